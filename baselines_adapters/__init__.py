@@ -1,0 +1,1 @@
+"""One adapter per method the benchmark can score, all behind one protocol."""

@@ -1,0 +1,1 @@
+"""Scene specs -> Blender renders with exact ground truth. Only generator/blender/ imports bpy."""

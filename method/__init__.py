@@ -1,0 +1,1 @@
+"""LumiMotion: relightable dynamic 2D Gaussian splatting in pure PyTorch."""
