@@ -1,0 +1,17 @@
+"""python -m benchmark VERB: metrics of two images, scoring a prediction folder, the evaluation grid."""
+import sys
+
+from lumibench.cli import build_main
+
+main = build_main(
+    "python -m benchmark",
+    "Score inverse-rendering methods on the LumiBench train-light -> test-light protocol.",
+    {
+        "metrics": "benchmark.commands.metrics",
+        "score": "benchmark.commands.score",
+        "eval": "benchmark.commands.eval",
+    },
+)
+
+if __name__ == "__main__":
+    sys.exit(main())
