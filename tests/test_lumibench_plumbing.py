@@ -1,0 +1,80 @@
+"""Shared plumbing: YAML validation messages, atomic writes, image reading errors, profiles."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from lumibench.config import Node, load_yaml
+from lumibench.errors import UserError, run_cli
+from lumibench.io import atomic_path, atomic_write_json, read_image, read_json, write_png
+from lumibench.profiles import available_profiles, load_profile
+
+
+def test_malformed_yaml_names_file_and_line(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("a: 1\nb: [1, 2\nc: 3\n")
+    with pytest.raises(UserError, match=r"bad\.yaml: malformed YAML at line \d+"):
+        load_yaml(bad)
+
+
+def test_node_messages_name_the_key():
+    root = Node({"camera": {"radius": "far"}}, "scene.yaml")
+    with pytest.raises(UserError, match=r"scene\.yaml: key 'camera\.radius' must be a number"):
+        root.child("camera").get("radius", float)
+    with pytest.raises(UserError, match=r"key 'camera\.fov' is required"):
+        root.child("camera").get("fov", float)
+    with pytest.raises(UserError, match=r"key 'camera\.radius' is not a known key"):
+        root.child("camera").reject_unknown(["distance"])
+    assert Node({"n": 3}, "x").get("n", float) == 3.0
+    with pytest.raises(UserError, match="must be positive"):
+        Node({"n": -1}, "x").get("n", int, check=lambda v: v > 0, check_msg="must be positive")
+    with pytest.raises(UserError, match="got a boolean"):
+        Node({"n": True}, "x").get("n", int)
+
+
+def test_atomic_path_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.json"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert not target.exists()
+    assert list(tmp_path.iterdir()) == []
+    atomic_write_json(target, {"a": np.float32(1.5)})
+    assert read_json(target) == {"a": 1.5}
+
+
+def test_read_image_roundtrip_and_errors(tmp_path):
+    img = np.random.default_rng(0).random((5, 7, 3)).astype(np.float32)
+    write_png(tmp_path / "a.png", img)
+    back = read_image(tmp_path / "a.png")
+    assert back.shape == (5, 7, 3)
+    assert np.abs(back - img).max() <= 0.5 / 255 + 1e-6
+    np.savez(tmp_path / "b.npz", img)
+    assert np.array_equal(read_image(tmp_path / "b.npz"), img)
+    (tmp_path / "c.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(UserError, match=r"cannot read image .*c\.png"):
+        read_image(tmp_path / "c.png")
+    with pytest.raises(UserError, match=r"image not found: .*missing\.png"):
+        read_image(tmp_path / "missing.png")
+
+
+def test_profiles_load_and_unknown_profile():
+    assert {"ci", "small", "full"} <= set(available_profiles())
+    ci = load_profile("ci")
+    assert ci.dataset.resolution <= 64 and ci.dataset.dynamic_frames <= 16
+    assert ci.dataset.test_views <= 4 and ci.dataset.spp <= 8
+    full = load_profile("full")
+    assert full.dataset.frames_for("spheres") == 100 and full.dataset.frames_for("hook") == 150
+    with pytest.raises(UserError, match="unknown profile 'huge'"):
+        load_profile("huge")
+
+
+def test_run_cli_turns_user_error_into_exit_2(capsys):
+    def main(argv):
+        raise UserError("unknown light 'moon'")
+
+    assert run_cli(main, []) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "error: unknown light 'moon'"
