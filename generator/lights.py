@@ -1,0 +1,108 @@
+"""Named lights (configs/lights.yaml) and user env-map files -> the 32 x 16 maps the dataset is lit by."""
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lumibench.config import Node, load_yaml
+from lumibench.errors import UserError
+from lumibench.profiles import CONFIG_DIR
+
+from .envmap import downsample_envmap, read_envmap, rotate_envmap
+
+LIGHTS_YAML = CONFIG_DIR / "lights.yaml"
+ENV_WIDTH, ENV_HEIGHT = 32, 16
+BPY_PREFIX = "bpy:"
+_SUFFIXES = (".hdr", ".exr")
+
+
+@dataclass(frozen=True)
+class LightSpec:
+    """One lighting condition: an env-map file, a rotation about world +Z and a radiance multiplier."""
+
+    name: str
+    source: Path
+    rotation_deg: float = 0.0
+    strength: float = 1.0
+
+
+def bpy_data_dir() -> Path:
+    """bpy's bundled data folder (``<bpy>/5.0/datafiles``) located without importing bpy."""
+    spec = importlib.util.find_spec("bpy")
+    locations = list(spec.submodule_search_locations or []) if spec else []
+    for loc in locations:
+        for cand in sorted(Path(loc).glob("*/datafiles")):
+            return cand
+    raise UserError("cannot locate the bpy package's datafiles (is bpy==5.0.1 installed? run `make setup`)")
+
+
+def _resolve_source(raw: str, base: Path) -> Path:
+    if raw.startswith(BPY_PREFIX):
+        return bpy_data_dir() / raw[len(BPY_PREFIX):]
+    p = Path(raw).expanduser()
+    return p if p.is_absolute() else (base / p)
+
+
+def load_lights(path: str | Path = LIGHTS_YAML) -> dict[str, LightSpec]:
+    """Parse and validate lights.yaml; errors name the file and the key. Files are checked on use.
+
+    ``source`` is ``bpy:<path under bpy's datafiles>``, an absolute path, or a path relative to the YAML.
+    """
+    path = Path(path)
+    root = Node(load_yaml(path), str(path))
+    root.reject_unknown(["lights"])
+    lights = root.child("lights")
+    if not lights.data:
+        raise lights.error("lights", "must list at least one light")
+    out: dict[str, LightSpec] = {}
+    for name in lights.data:
+        if not isinstance(name, str) or not name.isidentifier():
+            raise lights.error(str(name), "is not a valid light name (letters, digits and _ only)")
+        node = lights.child(name)
+        node.reject_unknown(["source", "rotation_deg", "strength"])
+        source = node.get("source", str, check=lambda s: s.lower().endswith(_SUFFIXES),
+                          check_msg="must be an .hdr or .exr file")
+        rotation = node.get("rotation_deg", float, 0.0, check=lambda r: -360.0 <= r <= 360.0,
+                            check_msg="must be in [-360, 360] degrees")
+        strength = node.get("strength", float, 1.0, check=lambda s: 0.0 < s < 1e6, check_msg="must be positive")
+        out[name] = LightSpec(name, _resolve_source(source, path.parent), rotation, strength)
+    return out
+
+
+def resolve_light(name_or_path: str | Path, lights_yaml: str | Path = LIGHTS_YAML) -> LightSpec:
+    """A light by name from lights.yaml, or a user .hdr/.exr path (rotation 0, strength 1).
+
+    The light's name for a path is the file stem (used for the dataset's ``<light>/`` folder).
+    """
+    text = str(name_or_path)
+    lights = load_lights(lights_yaml)
+    if text in lights:
+        spec = lights[text]
+        if not spec.source.is_file():
+            raise UserError(f"light '{text}': environment map not found: {spec.source} (see {lights_yaml})")
+        return spec
+    looks_like_path = text.lower().endswith(_SUFFIXES) or "/" in text or "\\" in text
+    if not looks_like_path:
+        raise UserError(f"unknown light '{text}' (known: {', '.join(sorted(lights))}; or give an .hdr/.exr path)")
+    p = Path(text).expanduser()
+    if not p.suffix.lower() in _SUFFIXES:
+        raise UserError(f"light file {p}: unsupported format '{p.suffix}' (use .hdr or .exr)")
+    if not p.is_file():
+        raise UserError(f"light file not found: {p}")
+    return LightSpec(p.stem, p.resolve(), 0.0, 1.0)
+
+
+def prepare_envmap(spec: LightSpec) -> np.ndarray:
+    """Read, rotate (at source resolution), scale by strength and downsample to float32 16 x 32 x 3.
+
+    The result is exactly the radiance the scene is lit by: the pipeline writes it as ``<light>.hdr``
+    and renders with that file at world strength 1.
+    """
+    img = read_envmap(spec.source)
+    if spec.rotation_deg:
+        img = rotate_envmap(img, spec.rotation_deg)
+    small = downsample_envmap(img, ENV_WIDTH, ENV_HEIGHT)
+    return (small * np.float32(spec.strength)).astype(np.float32)
