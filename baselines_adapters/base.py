@@ -1,0 +1,71 @@
+"""The adapter protocol: how the benchmark asks any method (ours, ablations, external) for predictions.
+
+An adapter turns (scene, train light, seed, profile) into a predictions folder in the layout of
+:mod:`benchmark.predictions`, finishing with ``meta.json``. Training, caching checkpoints under
+``runs_dir`` and rendering are the adapter's business; scoring is not (the benchmark scores every
+method the same way).
+"""
+from __future__ import annotations
+
+import abc
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from benchmark.predictions import write_meta
+from lumibench.io import atomic_path, write_png
+
+
+class MethodAdapter(abc.ABC):
+    """One scoreable method. Subclasses set ``name`` and ``version`` and implement :meth:`predict`."""
+
+    name: str = ""
+    version: str = "0"
+
+    def run(self, scene_dir: str | Path, train_light: str, test_lights: Sequence[str], seed: int,
+            profile: str | None, out_dir: str | Path, runs_dir: str | Path | None = None) -> Path:
+        """Write predictions for every test view and ``test_lights`` into ``out_dir``; return it.
+
+        ``meta.json`` is written last, so a folder without it is an interrupted run.
+        """
+        out = Path(out_dir)
+        (out / "meta.json").unlink(missing_ok=True)
+        out.mkdir(parents=True, exist_ok=True)
+        start = time.perf_counter()
+        extra = self.predict(Path(scene_dir), train_light, list(test_lights), int(seed), profile, out,
+                             Path(runs_dir) if runs_dir is not None else None) or {}
+        meta: dict[str, Any] = {
+            "method": self.name, "version": self.version, "seed": int(seed), "profile": profile,
+            "scene": Path(scene_dir).name, "train_light": train_light, "test_lights": list(test_lights),
+            "device": "cpu", "timings": {"predict": time.perf_counter() - start},
+        }
+        meta.update(extra)
+        write_meta(out, meta)
+        return out
+
+    @abc.abstractmethod
+    def predict(self, scene_dir: Path, train_light: str, test_lights: list[str], seed: int,
+                profile: str | None, out_dir: Path, runs_dir: Path | None) -> dict[str, Any] | None:
+        """Write the prediction images; return extra meta (timings, model_size, device, ...)."""
+
+
+def save(out_dir: Path, kind: str, stem: str, image: np.ndarray, light: str | None = None,
+         fmt: str = "png") -> Path:
+    """Write one prediction image where the predictions layout expects it (atomically)."""
+    if kind == "relight":
+        folder = out_dir / "relight" / str(light)
+    elif kind == "p_map":
+        folder = out_dir / "p_map" / "train"
+    else:
+        folder = out_dir / kind
+    path = folder / f"{stem}.{fmt}"
+    if fmt == "png":
+        write_png(path, image)
+    elif fmt == "npz":
+        with atomic_path(path) as tmp:
+            np.savez_compressed(tmp, image=np.asarray(image, dtype=np.float32))
+    else:
+        raise ValueError(f"unsupported prediction format {fmt!r}")
+    return path

@@ -1,0 +1,38 @@
+"""Registry of method adapters by name; later methods register themselves here (``register``)."""
+from __future__ import annotations
+
+import importlib
+from typing import Callable
+
+from lumibench.errors import UserError
+
+from .base import MethodAdapter
+
+# name -> "module:attribute" of a zero-argument factory, imported lazily (a method may pull in torch)
+_FACTORIES: dict[str, str | Callable[[], MethodAdapter]] = {
+    "lit_as_albedo": "baselines_adapters.trivial:LitAsAlbedo",
+    "mean_albedo": "baselines_adapters.trivial:MeanAlbedo",
+    "noisy_gt": "baselines_adapters.trivial:NoisyGT",
+}
+
+
+def register(name: str, factory: str | Callable[[], MethodAdapter]) -> None:
+    """Add a method: ``factory`` is a callable or a "module:attribute" string resolved on first use."""
+    _FACTORIES[name] = factory
+
+
+def available() -> list[str]:
+    return sorted(_FACTORIES)
+
+
+def get_adapter(name: str) -> MethodAdapter:
+    if name not in _FACTORIES:
+        raise UserError(f"unknown method '{name}' (known: {', '.join(available())})")
+    factory = _FACTORIES[name]
+    if isinstance(factory, str):
+        module_name, attr = factory.split(":")
+        factory = getattr(importlib.import_module(module_name), attr)
+    adapter = factory()
+    if not isinstance(adapter, MethodAdapter):
+        raise TypeError(f"factory for '{name}' returned {type(adapter).__name__}, not a MethodAdapter")
+    return adapter

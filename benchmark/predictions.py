@@ -1,0 +1,148 @@
+"""The predictions layout: what a method writes so that `python -m benchmark score` can score it.
+
+One folder per (method, scene, train light, seed); file stems are those of the scene's test split
+(``r_NNNN`` from ``transforms_test.json``), train-split stems for the optional P maps::
+
+    PRED/
+      meta.json                      method, version, seed, device, timings, model size (see below)
+      nvs/r_NNNN.<ext>               RGB of the test view under the TRAIN light
+      albedo/r_NNNN.<ext>            base colour
+      roughness/r_NNNN.<ext>         roughness in [0, 1] (one channel; extra channels ignored)
+      normal/r_NNNN.<ext>            world-space normal (optional; PNG stores (n + 1) / 2, float stores n)
+      relight/<test light>/r_NNNN.<ext>   RGB of the test view relit under each test light
+      p_map/train/r_NNNN.<ext>       optional: per-pixel dynamic probability P in [0, 1] of train views
+      envmap/<train light>.<ext>     optional: the estimated environment map (linear, equirectangular)
+
+``<ext>`` is ``png`` (8/16-bit, **sRGB-encoded** for albedo and the RGB images, as the ground truth
+PNGs), or ``exr`` / ``npz`` (float32, **linear** for albedo and the RGB images; the scorer encodes them
+with the sRGB transfer function and clips to [0, 1], as Blender's "Standard" view transform does).
+Roughness, normals and P are linear in every format. A fourth (alpha) channel is ignored: the protocol
+masks with the ground-truth alpha. Components are optional per kind (a method without NVS gets no NVS
+score), but a kind that exists must have a file for every test view.
+
+``meta.json``::
+
+    {"method": str, "version": str, "seed": int, "device": str,
+     "timings": {"<stage>": seconds, ...}, "iterations_per_s": float, "peak_memory_bytes": int,
+     "model_size": {"gaussians": int, "parameters": int, "bytes": int}}
+
+Only ``method``, ``version`` and ``seed`` are required; every other key is reported when present.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmark.align import linear_to_srgb, srgb_to_linear
+from lumibench.errors import UserError
+from lumibench.io import atomic_write_json, read_image, read_json
+
+KINDS = ("nvs", "albedo", "roughness", "normal", "relight", "p_map", "envmap")
+EXTENSIONS = (".png", ".exr", ".npz")
+# kinds whose PNG is display-encoded while float files are linear
+COLOUR_KINDS = ("nvs", "albedo", "relight")
+
+
+def srgb_encode(x: np.ndarray) -> np.ndarray:
+    """Linear -> sRGB, clipped to [0, 1] first, as Blender's Standard view transform."""
+    return np.asarray(linear_to_srgb(np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)), dtype=np.float32)
+
+
+def srgb_decode(x: np.ndarray) -> np.ndarray:
+    """sRGB -> linear (input clipped to [0, 1])."""
+    return np.asarray(srgb_to_linear(np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)), dtype=np.float32)
+
+
+def find_file(folder: Path, stem: str) -> Path | None:
+    """The prediction file for ``stem`` in any accepted format; two formats at once is ambiguous."""
+    found = [folder / f"{stem}{ext}" for ext in EXTENSIONS if (folder / f"{stem}{ext}").is_file()]
+    if len(found) > 1:
+        raise UserError(f"ambiguous predictions: {', '.join(map(str, found))} (keep one format)")
+    return found[0] if found else None
+
+
+def is_float_file(path: Path) -> bool:
+    return path.suffix.lower() in (".exr", ".npz", ".npy")
+
+
+@dataclass(frozen=True)
+class PredictionFolder:
+    """Reads one predictions folder, checking shapes and naming the file on every failure."""
+
+    root: Path
+
+    def __post_init__(self):
+        if not Path(self.root).is_dir():
+            raise UserError(f"predictions folder not found: {self.root}")
+
+    def meta(self) -> dict[str, Any]:
+        path = Path(self.root) / "meta.json"
+        meta = read_json(path)
+        if not isinstance(meta, dict):
+            raise UserError(f"{path}: must hold a JSON object")
+        for key, typ in (("method", str), ("version", str), ("seed", int)):
+            if not isinstance(meta.get(key), typ) or isinstance(meta.get(key), bool):
+                raise UserError(f"{path}: field '{key}' is missing or not a {typ.__name__}")
+        return meta
+
+    def kind_dir(self, kind: str, light: str | None = None) -> Path:
+        if kind == "relight":
+            return Path(self.root) / "relight" / str(light)
+        if kind == "p_map":
+            return Path(self.root) / "p_map" / "train"
+        return Path(self.root) / kind
+
+    def has(self, kind: str, light: str | None = None) -> bool:
+        folder = self.kind_dir(kind, light)
+        return folder.is_dir() and any(p.suffix.lower() in EXTENSIONS for p in folder.iterdir())
+
+    def path(self, kind: str, stem: str, light: str | None = None) -> Path:
+        folder = self.kind_dir(kind, light)
+        found = find_file(folder, stem)
+        if found is None:
+            raise UserError(f"missing prediction file {folder / stem}.png (or .exr/.npz): "
+                            f"the method wrote '{kind}' for some views but not for {stem}")
+        return found
+
+    def read(self, kind: str, stem: str, shape: tuple[int, int], light: str | None = None) -> np.ndarray:
+        """One image as float32 H x W x C: RGB kinds in display (sRGB) space, others linear."""
+        path = self.path(kind, stem, light)
+        img = read_image(path)
+        if img.shape[:2] != tuple(shape):
+            raise UserError(f"prediction {path} is {img.shape[1]}x{img.shape[0]} pixels; "
+                            f"the ground truth is {shape[1]}x{shape[0]}")
+        if not np.all(np.isfinite(img)):
+            raise UserError(f"prediction {path} contains NaN or infinite values")
+        if kind in COLOUR_KINDS:
+            img = _rgb(img, path)
+            return srgb_encode(img) if is_float_file(path) else np.clip(img, 0.0, 1.0)
+        if kind == "normal":
+            img = _rgb(img, path)
+            return img if is_float_file(path) else img * 2.0 - 1.0
+        return np.clip(img[..., :1], 0.0, 1.0)  # roughness, p_map: one channel
+
+    def envmap(self, light: str) -> np.ndarray | None:
+        """The estimated env map (linear RGB) if the method wrote one."""
+        folder = Path(self.root) / "envmap"
+        for ext in (".hdr", ".exr", ".npz", ".png"):
+            path = folder / f"{light}{ext}"
+            if path.is_file():
+                img = _rgb(read_image(path), path)
+                return srgb_decode(img) if ext == ".png" else img
+        return None
+
+
+def _rgb(img: np.ndarray, path: Path) -> np.ndarray:
+    if img.shape[-1] == 1:
+        return np.repeat(img, 3, axis=-1)
+    if img.shape[-1] < 3:
+        raise UserError(f"prediction {path} has {img.shape[-1]} channels; expected RGB")
+    return img[..., :3]
+
+
+def write_meta(out_dir: Path, meta: dict[str, Any]) -> None:
+    """Written last by adapters: a folder with meta.json is a finished prediction."""
+    atomic_write_json(Path(out_dir) / "meta.json", meta)

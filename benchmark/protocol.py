@@ -1,0 +1,76 @@
+"""The two scoring protocols: how masks, PSNR averaging and LPIPS input ranges are applied.
+
+``lumimotion`` reproduces the published code's conventions: prediction and ground truth are both
+multiplied by the ground-truth alpha and scored over the full image, PSNR is the mean of per-channel
+PSNRs, LPIPS is fed images in [0, 1] as they are. ``strict`` scores only the foreground (alpha > 0.5):
+PSNR and SSIM are averaged over foreground pixels, LPIPS sees both images with the background set to
+black and is fed [-1, 1] as LPIPS was trained. Both protocols share the rest: albedo aligned by a
+per-channel median ratio in linear space over the foreground of all test views, roughness MSE over the
+foreground, relight scored with no per-image rescaling.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lumibench.errors import UserError
+
+PSNR_CAP_DB = 100.0  # identical images have infinite PSNR; results store this cap instead (JSON has no inf)
+FOREGROUND_THRESHOLD = 0.5
+
+
+@dataclass(frozen=True)
+class Protocol:
+    name: str
+    masked_full_image: bool
+    psnr_per_channel: bool
+    lpips_input_range: str
+
+    def describe(self) -> str:
+        if self.masked_full_image:
+            return ("lumimotion protocol: full image with prediction and ground truth multiplied by the GT alpha, "
+                    "PSNR averaged per channel, LPIPS fed [0,1]")
+        return "strict protocol: foreground only (GT alpha > 0.5), pooled PSNR, LPIPS fed [-1,1]"
+
+    def score_rgb(self, pred: np.ndarray, gt: np.ndarray, alpha: np.ndarray, lpips_net: str) -> dict[str, float]:
+        """PSNR / SSIM / LPIPS of one RGB pair (display space, [0, 1]) under this protocol."""
+        from benchmark import metrics
+        # the function, not benchmark.metrics.lpips: once the submodule is imported it shadows the wrapper
+        from benchmark.metrics.lpips import lpips
+
+        a = alpha[..., :1].astype(np.float32)
+        if self.masked_full_image:
+            p, g = pred * a, gt * a
+            psnr = metrics.psnr(p, g, per_channel=self.psnr_per_channel)
+            ssim = metrics.ssim(p, g)
+        else:
+            fg = foreground(alpha)
+            if not fg.any():
+                raise UserError("a test view has no foreground pixel (GT alpha <= 0.5 everywhere)")
+            p, g = pred * fg, gt * fg
+            psnr = metrics.psnr(pred, gt, mask=fg, per_channel=self.psnr_per_channel)
+            ssim = metrics.ssim(p, g, mask=fg)  # black background: no leak from outside
+        lp = lpips(p, g, net=lpips_net, input_range=self.lpips_input_range)
+        return {"psnr": cap_psnr(psnr), "ssim": float(ssim), "lpips": float(lp)}
+
+
+PROTOCOLS = {
+    "lumimotion": Protocol("lumimotion", masked_full_image=True, psnr_per_channel=True, lpips_input_range="[0,1]"),
+    "strict": Protocol("strict", masked_full_image=False, psnr_per_channel=False, lpips_input_range="[-1,1]"),
+}
+
+
+def get_protocol(name: str) -> Protocol:
+    if name not in PROTOCOLS:
+        raise UserError(f"unknown protocol '{name}' (known: {', '.join(PROTOCOLS)})")
+    return PROTOCOLS[name]
+
+
+def foreground(alpha: np.ndarray) -> np.ndarray:
+    """Binary foreground (H x W x 1 float) from a coverage alpha."""
+    return (alpha[..., :1] > FOREGROUND_THRESHOLD).astype(np.float32)
+
+
+def cap_psnr(value: float) -> float:
+    return float(min(value, PSNR_CAP_DB))

@@ -1,0 +1,139 @@
+"""Result files: one JSON per scored run, with a schema version, validated on every read.
+
+A result is the only thing aggregation, tables, charts and the job grid's resume logic look at, so a
+malformed file is refused with a message naming the file and the field rather than skewing a table.
+
+    {"schema_version": 1, "status": "ok" | "failed", "error": null | "<cause>",
+     "method", "adapter_version", "scene", "train_light", "test_light", "seed", "profile", "protocol",
+     "metric_config": {"lpips_net", "lpips_input_range", "psnr_channels", "masking", "ssim",
+                       "lpips_weights": {"file", "sha256", "package"}},
+     "inputs": {"scene_dir", "pred_dir", "dataset_spec_hash", "dataset_json_sha256"},
+     "metrics": {"nvs": {psnr, ssim, lpips} | null, "albedo": {psnr, ssim, lpips, scale[3]} | null,
+                 "roughness": {mse} | null, "relight": {psnr, ssim, lpips} | null,
+                 "delta_psnr": {db, percent} | null, "separation": {iou, balanced_accuracy} | null,
+                 "normal": {mae_deg} | null},
+     "per_image": {"<task>": {"r_NNNN": {metric: value}}},
+     "timings": {"<stage>": seconds} | null, "iterations_per_s", "peak_memory_bytes", "device",
+     "model_size": {"gaussians", "parameters", "bytes"} | null, "created": ISO-8601 UTC}
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from pathlib import Path
+from typing import Any
+
+from lumibench.errors import UserError
+from lumibench.io import atomic_write_json, read_json
+
+SCHEMA_VERSION = 1
+STATUSES = ("ok", "failed")
+TASK_METRICS = {
+    "nvs": ("psnr", "ssim", "lpips"),
+    "albedo": ("psnr", "ssim", "lpips"),
+    "roughness": ("mse",),
+    "relight": ("psnr", "ssim", "lpips"),
+    "delta_psnr": ("db", "percent"),
+    "separation": ("iou", "balanced_accuracy"),
+    "normal": ("mae_deg",),
+}
+_IDENTITY = (("method", str), ("adapter_version", str), ("scene", str), ("train_light", str),
+             ("test_light", str), ("seed", int), ("protocol", str))
+
+
+def now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def failed_result(identity: dict[str, Any], cause: str) -> dict[str, Any]:
+    """A result recording why a run failed: it is shown in tables and charts, never dropped."""
+    res = {"schema_version": SCHEMA_VERSION, "status": "failed", "error": str(cause) or "unknown error"}
+    res.update({key: identity.get(key) for key, _ in _IDENTITY})
+    res["adapter_version"] = res["adapter_version"] or "unknown"
+    res["profile"] = identity.get("profile")
+    res["metrics"] = None
+    res["created"] = now_iso()
+    return res
+
+
+def _fail(source: str, field: str, msg: str) -> UserError:
+    return UserError(f"{source}: field '{field}' {msg}")
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def validate(obj: Any, source: str = "<result>") -> dict[str, Any]:
+    """Return ``obj`` if it is a well-formed result; otherwise raise a UserError naming the field."""
+    if not isinstance(obj, dict):
+        raise UserError(f"{source}: a result file must hold a JSON object")
+    if obj.get("schema_version") != SCHEMA_VERSION:
+        raise _fail(source, "schema_version", f"must be {SCHEMA_VERSION}, got {obj.get('schema_version')!r}")
+    status = obj.get("status")
+    if status not in STATUSES:
+        raise _fail(source, "status", f"must be one of {', '.join(STATUSES)}, got {status!r}")
+    for key, typ in _IDENTITY:
+        value = obj.get(key)
+        if not isinstance(value, typ) or isinstance(value, bool):
+            raise _fail(source, key, f"must be a {typ.__name__}, got {value!r}")
+    if obj.get("profile") is not None and not isinstance(obj["profile"], str):
+        raise _fail(source, "profile", "must be a string or null")
+    if status == "failed":
+        if not isinstance(obj.get("error"), str) or not obj["error"]:
+            raise _fail(source, "error", "must state the cause of a failed run")
+        return obj
+    metrics = obj.get("metrics")
+    if not isinstance(metrics, dict):
+        raise _fail(source, "metrics", "must be an object in a result with status 'ok'")
+    for task, value in metrics.items():
+        if task not in TASK_METRICS:
+            raise _fail(source, f"metrics.{task}", f"is not a known task (known: {', '.join(TASK_METRICS)})")
+        if value is None:
+            continue
+        if not isinstance(value, dict):
+            raise _fail(source, f"metrics.{task}", "must be an object or null")
+        for name in TASK_METRICS[task]:
+            if not _number(value.get(name)):
+                raise _fail(source, f"metrics.{task}.{name}", f"must be a finite number, got {value.get(name)!r}")
+    albedo = metrics.get("albedo")
+    if albedo is not None:
+        scale = albedo.get("scale")
+        if not (isinstance(scale, list) and len(scale) == 3 and all(_number(s) for s in scale)):
+            raise _fail(source, "metrics.albedo.scale", f"must be a list of 3 numbers, got {scale!r}")
+    if not any(metrics.get(t) is not None for t in ("albedo", "relight", "nvs", "roughness")):
+        raise _fail(source, "metrics", "has no scored task (nvs, albedo, roughness or relight)")
+    mc = obj.get("metric_config")
+    if not isinstance(mc, dict):
+        raise _fail(source, "metric_config", "must be an object")
+    weights = mc.get("lpips_weights")
+    if not isinstance(weights, dict) or not isinstance(weights.get("sha256"), str):
+        raise _fail(source, "metric_config.lpips_weights.sha256", "must record the LPIPS weights' sha256")
+    if not isinstance(obj.get("per_image"), dict):
+        raise _fail(source, "per_image", "must be an object of per-view values")
+    for key in ("timings", "model_size"):
+        value = obj.get(key)
+        if value is not None and not (isinstance(value, dict) and all(_number(v) for v in value.values())):
+            raise _fail(source, key, "must be null or an object of numbers")
+    return obj
+
+
+def write_result(path: str | Path, result: dict[str, Any]) -> None:
+    """Validate, then write atomically: a result file on disk is always a valid one."""
+    validate(result, str(path))
+    atomic_write_json(path, result)
+
+
+def read_result(path: str | Path) -> dict[str, Any]:
+    return validate(read_json(path), str(path))
+
+
+def is_finished(path: str | Path) -> bool:
+    """A job is finished when its result file exists, validates and says 'ok' (failed ones are retried)."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    try:
+        return read_result(path)["status"] == "ok"
+    except UserError:
+        return False

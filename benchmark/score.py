@@ -1,0 +1,235 @@
+"""Scoring one predictions folder against one rendered scene: the benchmark's train -> test protocol.
+
+Albedo is aligned to the ground truth by one per-channel median ratio over the foreground of all test
+views, in linear space, then scored in display (sRGB) space like the ground-truth PNGs. Relight is scored
+as predicted (no per-image rescaling), NVS against the test views under the train light, roughness by
+its MSE over the foreground, Delta PSNR as the drop from NVS to relight (dB and percent of the NVS PSNR,
+as the paper's supplementary table). A P map on the train views gives the static/dynamic separation score.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lumibench import layout
+from lumibench.errors import UserError
+from lumibench.io import read_image, sha256_file
+
+from .predictions import PredictionFolder, srgb_decode, srgb_encode
+from .protocol import Protocol, foreground, get_protocol
+from .results import SCHEMA_VERSION, now_iso, validate
+
+SSIM_DESCRIPTION = "Gaussian window 11, sigma 1.5, data range 1"
+
+
+def available_lights(scene: Path) -> list[str]:
+    """Lights rendered for the test split of a scene (folders holding test/ that are not GT kinds)."""
+    return sorted(p.name for p in Path(scene).iterdir()
+                  if p.is_dir() and p.name not in layout.GT_KINDS and (p / "test").is_dir())
+
+
+def check_light(scene: Path, light: str, role: str) -> None:
+    lights = available_lights(scene)
+    if light not in lights:
+        raise UserError(f"unknown {role} light '{light}' for scene {scene} (rendered: {', '.join(lights) or 'none'})")
+
+
+def read_gt(scene: Path, kind: str, file_path: str) -> np.ndarray:
+    """Ground truth of ``kind``: the float .npz when the generator wrote one, else the PNG (decoded).
+
+    Albedo comes back linear; roughness and dynamic_mask one channel; normals unit vectors.
+    """
+    npz = layout.gt_path(scene, kind, file_path, ".npz")
+    if npz.is_file():
+        img = read_image(npz)
+        encoded = False
+    else:
+        img = read_image(layout.gt_path(scene, kind, file_path, ".png"))
+        encoded = True
+    if kind == "albedo":
+        rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
+        return srgb_decode(rgb) if encoded else rgb
+    if kind == "normal":
+        rgb = img[..., :3]
+        return rgb * 2.0 - 1.0 if encoded else rgb
+    return img[..., :1]
+
+
+def read_lit(scene: Path, light: str, file_path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(RGB in display space, alpha H x W x 1) of a rendered view."""
+    img = read_image(layout.lit_image_path(scene, light, file_path))
+    alpha = img[..., 3:4] if img.shape[-1] >= 4 else np.ones_like(img[..., :1])
+    rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
+    return rgb, alpha
+
+
+def dataset_inputs(scene: Path) -> dict[str, Any]:
+    """Hashes that tie a result to the exact dataset it was scored on."""
+    meta_path = Path(scene) / "dataset.json"
+    out: dict[str, Any] = {"dataset_spec_hash": None, "dataset_json_sha256": None}
+    if meta_path.is_file():
+        out["dataset_json_sha256"] = sha256_file(meta_path)
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError:
+            raise UserError(f"{meta_path}: corrupt JSON") from None
+        for key in ("spec_hash", "spec_sha256", "hash"):
+            if isinstance(meta.get(key), str):
+                out["dataset_spec_hash"] = meta[key]
+                break
+    return out
+
+
+def _mean(rows: dict[str, dict[str, float]], key: str) -> float:
+    return float(np.mean([r[key] for r in rows.values()]))
+
+
+def _summary(rows: dict[str, dict[str, float]]) -> dict[str, float]:
+    keys = next(iter(rows.values())).keys()
+    return {k: _mean(rows, k) for k in keys}
+
+
+def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_light: str,
+          protocol: str | Protocol = "lumimotion", lpips_net: str = "vgg", profile: str | None = None,
+          scene_name: str | None = None) -> dict[str, Any]:
+    """Score ``pred_dir`` on ``scene_dir`` and return a validated result dictionary."""
+    from benchmark import align, metrics
+
+    scene = Path(scene_dir)
+    if not scene.is_dir():
+        raise UserError(f"scene directory not found: {scene}")
+    proto = get_protocol(protocol) if isinstance(protocol, str) else protocol
+    check_light(scene, train_light, "train")
+    check_light(scene, test_light, "test")
+    pred = PredictionFolder(Path(pred_dir))
+    meta = pred.meta()
+    frames = layout.read_transforms(scene, "test").frames
+    if not frames:
+        raise UserError(f"{scene}/transforms_test.json lists no test view")
+
+    kinds = {k: pred.has(k) for k in ("nvs", "albedo", "roughness", "normal")}
+    kinds["relight"] = pred.has("relight", test_light)
+    if not any(kinds[k] for k in ("nvs", "albedo", "roughness", "relight")):
+        relit = sorted(p.name for p in (Path(pred_dir) / "relight").glob("*")) if (Path(pred_dir) / "relight").is_dir() else []
+        hint = f" (relight/ holds {', '.join(relit)}, not {test_light})" if relit else ""
+        raise UserError(f"no predictions to score in {pred_dir}: expected nvs/, albedo/, roughness/ or "
+                        f"relight/{test_light}/{hint}")
+
+    per_image: dict[str, dict[str, dict[str, float]]] = {k: {} for k in ("nvs", "albedo", "roughness", "relight", "normal")}
+    albedo_pred, albedo_gt, albedo_mask, albedo_stems = [], [], [], []
+    for frame in frames:
+        stem, fp = frame.stem, frame.file_path
+        gt_train, alpha = read_lit(scene, train_light, fp)
+        shape = gt_train.shape[:2]
+        fg = foreground(alpha)
+        if kinds["nvs"]:
+            per_image["nvs"][stem] = proto.score_rgb(pred.read("nvs", stem, shape), gt_train, alpha, lpips_net)
+        if kinds["relight"]:
+            gt_test, _ = read_lit(scene, test_light, fp)
+            per_image["relight"][stem] = proto.score_rgb(pred.read("relight", stem, shape, test_light), gt_test, alpha,
+                                                         lpips_net)
+        if kinds["roughness"]:
+            gt_r = read_gt(scene, "roughness", fp)
+            per_image["roughness"][stem] = {"mse": float(metrics.mse(pred.read("roughness", stem, shape), gt_r, mask=fg))}
+        if kinds["normal"]:
+            n_p = _unit(pred.read("normal", stem, shape))
+            n_g = _unit(read_gt(scene, "normal", fp))
+            cos = np.clip((n_p * n_g).sum(-1), -1.0, 1.0)
+            ang = np.degrees(np.arccos(cos))[fg[..., 0] > 0]
+            per_image["normal"][stem] = {"mae_deg": float(ang.mean())}
+        if kinds["albedo"]:
+            albedo_pred.append(srgb_decode(pred.read("albedo", stem, shape)))
+            albedo_gt.append(read_gt(scene, "albedo", fp))
+            albedo_mask.append(fg)
+            albedo_stems.append((stem, alpha))
+
+    result_metrics: dict[str, Any] = {k: None for k in ("nvs", "albedo", "roughness", "relight", "delta_psnr",
+                                                         "separation", "normal")}
+    scale = None
+    if kinds["albedo"]:
+        scale = np.asarray(align.albedo_scale(albedo_pred, albedo_gt, albedo_mask), dtype=np.float64).reshape(3)
+        for (stem, alpha), p_lin, g_lin in zip(albedo_stems, albedo_pred, albedo_gt):
+            aligned = srgb_encode(np.asarray(align.apply_scale(p_lin, scale)))
+            per_image["albedo"][stem] = proto.score_rgb(aligned, srgb_encode(g_lin), alpha, lpips_net)
+    for task in ("nvs", "albedo", "roughness", "relight", "normal"):
+        if per_image[task]:
+            result_metrics[task] = _summary(per_image[task])
+    if scale is not None:
+        result_metrics["albedo"]["scale"] = [float(s) for s in scale]
+    if result_metrics["nvs"] and result_metrics["relight"]:
+        db = result_metrics["nvs"]["psnr"] - result_metrics["relight"]["psnr"]
+        result_metrics["delta_psnr"] = {"db": db, "percent": 100.0 * db / result_metrics["nvs"]["psnr"]}
+    if pred.has("p_map"):
+        result_metrics["separation"] = separation_score(scene, pred, train_light)
+
+    weights = metrics.lpips_weights_info(lpips_net)
+    result: dict[str, Any] = {
+        "schema_version": SCHEMA_VERSION,
+        "status": "ok",
+        "error": None,
+        "method": meta["method"],
+        "adapter_version": meta["version"],
+        "scene": scene_name or scene.name,
+        "train_light": train_light,
+        "test_light": test_light,
+        "seed": int(meta["seed"]),
+        "profile": profile or meta.get("profile"),
+        "protocol": proto.name,
+        "metric_config": {
+            "lpips_net": lpips_net,
+            "lpips_input_range": proto.lpips_input_range,
+            "psnr_channels": "per-channel mean" if proto.psnr_per_channel else "pooled",
+            "masking": proto.describe(),
+            "ssim": SSIM_DESCRIPTION,
+            "lpips_weights": dict(weights),
+            "albedo_alignment": "per-channel median ratio, linear space, foreground of all test views",
+        },
+        "inputs": {"scene_dir": str(scene.resolve()), "pred_dir": str(Path(pred_dir).resolve()),
+                   **dataset_inputs(scene)},
+        "metrics": result_metrics,
+        "per_image": {k: v for k, v in per_image.items() if v},
+        "timings": _numbers(meta.get("timings")),
+        "iterations_per_s": meta.get("iterations_per_s"),
+        "peak_memory_bytes": meta.get("peak_memory_bytes"),
+        "device": meta.get("device"),
+        "model_size": _numbers(meta.get("model_size")),
+        "created": now_iso(),
+    }
+    return validate(result, f"result for {pred_dir}")
+
+
+def separation_score(scene: Path, pred: PredictionFolder, train_light: str) -> dict[str, float]:
+    """IoU and balanced accuracy of (P > 0.5) against the GT dynamic mask, foreground of the train views."""
+    tp = fp = fn = tn = 0
+    for frame in layout.read_transforms(scene, "train").frames:
+        _, alpha = read_lit(scene, train_light, frame.file_path)
+        fg = foreground(alpha)[..., 0] > 0
+        p = pred.read("p_map", frame.stem, alpha.shape[:2])[..., 0] > 0.5
+        g = read_gt(scene, "dynamic_mask", frame.file_path)[..., 0] > 0.5
+        p, g = p[fg], g[fg]
+        tp += int(np.sum(p & g))
+        fp += int(np.sum(p & ~g))
+        fn += int(np.sum(~p & g))
+        tn += int(np.sum(~p & ~g))
+    union = tp + fp + fn
+    iou = tp / union if union else 1.0
+    tpr = tp / (tp + fn) if tp + fn else 1.0
+    tnr = tn / (tn + fp) if tn + fp else 1.0
+    return {"iou": float(iou), "balanced_accuracy": float(0.5 * (tpr + tnr))}
+
+
+def _unit(n: np.ndarray) -> np.ndarray:
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
+
+
+def _numbers(obj: Any) -> dict[str, float] | None:
+    """Keep the numeric entries of a meta.json mapping (timings, model size)."""
+    if not isinstance(obj, dict):
+        return None
+    out = {str(k): float(v) for k, v in obj.items()
+           if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
+    return out or None
