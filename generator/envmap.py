@@ -304,21 +304,27 @@ def _decode_flat(data: bytes, pos: int, width: int, height: int) -> np.ndarray:
 
 
 def _rgbe_to_float(rgbe: np.ndarray) -> np.ndarray:
-    """Radiance's decoding: (mantissa + 0.5) * 2^(e - 136), zero when e == 0."""
+    """mantissa * 2^(e - 136), zero when e == 0: the decoding Blender (OpenImageIO) applies when it
+    renders with the file, so the method reads exactly the radiance the dataset was lit by (Radiance's
+    own tools add half a step to the mantissa; we deliberately do not)."""
     e = rgbe[..., 3].astype(np.int32)
     scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0)
-    return ((rgbe[..., :3].astype(np.float64) + 0.5) * scale[..., None]).astype(np.float32)
+    return (rgbe[..., :3].astype(np.float64) * scale[..., None]).astype(np.float32)
 
 
 def _float_to_rgbe(img: np.ndarray) -> np.ndarray:
+    """Shared exponent of the largest channel, mantissas rounded to nearest (error <= half a step)."""
     img = np.maximum(np.asarray(img, dtype=np.float64), 0.0)
     v = img.max(axis=-1)
-    mant, exp = np.frexp(v)  # v = mant * 2^exp, mant in [0.5, 1)
     ok = v >= 1e-32
-    scale = np.where(ok, mant * 256.0 / np.where(ok, v, 1.0), 0.0)
+    _, exp = np.frexp(np.where(ok, v, 1.0))  # v = m 2^exp, m in [0.5, 1): largest mantissa byte in [128, 256)
+    exp = np.where(np.round(np.ldexp(np.where(ok, v, 0.0), 8 - exp)) >= 256, exp + 1, exp)
+    ok &= exp + 128 >= 1
+    exp = np.clip(exp, -127, 127)
+    mant = np.round(np.ldexp(img, (8 - exp)[..., None]))
     out = np.zeros(img.shape[:-1] + (4,), dtype=np.uint8)
-    out[..., :3] = np.clip(np.floor(img * scale[..., None]), 0, 255).astype(np.uint8)
-    out[..., 3] = np.where(ok, np.clip(exp + 128, 0, 255), 0).astype(np.uint8)
+    out[..., :3] = np.where(ok[..., None], np.clip(mant, 0, 255), 0).astype(np.uint8)
+    out[..., 3] = np.where(ok, exp + 128, 0).astype(np.uint8)
     return out
 
 

@@ -31,7 +31,8 @@ def set_environment(bpy_scene, hdr_path, strength: float = 1.0):
     if world is None:
         world = bpy.data.worlds.get(WORLD_NAME) or bpy.data.worlds.new(WORLD_NAME)
         bpy_scene.world = world
-    world.use_nodes = True
+    if world.node_tree is None:  # Blender 5 creates the tree with the world; use_nodes is deprecated
+        world.use_nodes = True
     tree = world.node_tree
     tree.nodes.clear()
     image = None
