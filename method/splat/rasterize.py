@@ -1,0 +1,269 @@
+"""Differentiable 2D Gaussian splat rasterizer (2DGS, Huang et al. 2024), pure PyTorch, CPU and CUDA.
+
+Per splat, M = K [s_u t_u, s_v t_v, mean] (camera frame) maps local (u, v, 1) to homogeneous screen
+coordinates. The pixel (x, y) is the intersection of the planes x w - X = 0 and y w - Y = 0; pulled back
+into the splat frame they are h_u = M0 - x M2 and h_v = M1 - y M2, and the hit is (u, v, 1) ~ h_u x h_v.
+Expanded, h_u x h_v = A + x B + y C with A = M0 x M1, B = M1 x M2, C = M2 x M0 (per splat), and the
+camera depth of the hit is det(M) / c_2. Low-pass fallback (2DGS): rho = min(u^2 + v^2, 2 |pixel - centre|^2),
+so tiny or edge-on splats still cover about one pixel; its depth is then the centre's.
+
+Compositing: splats sorted by centre depth, alpha = min(0.99, o exp(-rho / 2)); pairs with alpha < 1/255
+or hit depth < near are skipped; a pixel stops at the splat that would take its transmittance below 1e-4
+(that splat is not composited, as in 3DGS/2DGS).
+
+Scaling: (1) without gradients, per-splat screen bounds of the support (the ellipse where alpha can reach
+1/255, union the fallback disc), culling; (2) candidate (pixel, splat) pairs from the bounds, exact alpha
+test, sort by pixel (stable, so depth order is kept), transmittance by segmented log-sum, cut at the stop;
+(3) with gradients, only the surviving pairs are recomputed and composited with segmented scans.
+Memory is linear in the number of pairs.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .camera import Camera
+from .segments import Segments
+from .splats import check_splats, splat_frames
+
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_STOP = 1e-4
+
+
+@dataclass
+class RasterOutput:
+    """Per-pixel outputs (H, W, ...) plus per-splat visibility for densification.
+
+    ``normal`` is the alpha-weighted sum of camera-facing world normals (length <= alpha, as in 2DGS);
+    ``depth_expected`` is sum(w z) / alpha (0 where alpha = 0); ``depth_median`` is the depth of the splat
+    at which transmittance crosses 0.5 (the last one if it never does; 0 where nothing is hit);
+    ``distortion`` is sum_{i>j} w_i w_j (m_i - m_j)^2 with m the NDC-mapped depth;
+    ``normal_from_depth`` is the unit normal of the surface unprojected from the rendered depth.
+    """
+
+    features: torch.Tensor
+    alpha: torch.Tensor
+    normal: torch.Tensor
+    depth_expected: torch.Tensor
+    depth_median: torch.Tensor
+    distortion: torch.Tensor
+    normal_from_depth: torch.Tensor
+    visible: torch.Tensor  # (N,) bool: splat contributes to at least one pixel
+    radii: torch.Tensor  # (N,) screen-space half extent of the support in pixels (0 if culled)
+    num_pairs: int
+
+
+def project_splats(means, quats, scales, opacities, camera: Camera):
+    """Per-splat screen-space quantities (differentiable): A, B, C (N, 3 each), det(M), projected centre,
+    centre depth, and the camera-facing world normal."""
+    tu, tv, nrm = splat_frames(quats, scales)
+    rot, trans = camera.w2c[:3, :3], camera.w2c[:3, 3]
+    p = means @ rot.T + trans
+    a = tu @ rot.T
+    b = tv @ rot.T
+    f, cx, cy = camera.focal, camera.cx, camera.cy
+    # rows of M = K [a b p]: M0 = f (a_x, b_x, p_x) + cx (a_z, b_z, p_z), M1 likewise, M2 = (a_z, b_z, p_z)
+    m2 = torch.stack([a[:, 2], b[:, 2], p[:, 2]], -1)
+    m0 = f * torch.stack([a[:, 0], b[:, 0], p[:, 0]], -1) + cx * m2
+    m1 = f * torch.stack([a[:, 1], b[:, 1], p[:, 1]], -1) + cy * m2
+    A = torch.linalg.cross(m0, m1)
+    B = torch.linalg.cross(m1, m2)
+    C = torch.linalg.cross(m2, m0)
+    det = (m2 * A).sum(-1)
+    z = p[:, 2]
+    zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
+    centre = torch.stack([f * p[:, 0] / zs + cx, f * p[:, 1] / zs + cy], -1)
+    view = camera.center - means
+    facing = torch.where((nrm * view).sum(-1, keepdim=True) < 0, -nrm, nrm)
+    return dict(A=A, B=B, C=C, det=det, centre=centre, z=z, normal=facing, m0=m0, m1=m1, m2=m2)
+
+
+def _screen_bounds(proj, opacities, camera: Camera, near: float):
+    """No-grad pixel bounding boxes (inclusive) of each splat's support; also a validity mask and radii."""
+    m0, m1, m2 = proj["m0"], proj["m1"], proj["m2"]
+    o = opacities.detach()
+    log_t = torch.log((o / ALPHA_MIN).clamp_min(1.0))  # G >= 1/(255 o)  <=>  rho <= 2 log(255 o)
+    k2 = 2.0 * log_t
+    # dual conic of the support ellipse: C* = M diag(k2, k2, -1) M^T; tangent lines x = X solve
+    # C*00 - 2 X C*02 + X^2 C*22 = 0.
+    def dual(r, s):
+        return k2 * (r[:, 0] * s[:, 0] + r[:, 1] * s[:, 1]) - r[:, 2] * s[:, 2]
+
+    c00, c11, c22 = dual(m0, m0), dual(m1, m1), dual(m2, m2)
+    c02, c12 = dual(m0, m2), dual(m1, m2)
+    bounded = c22 < -1e-12 * (m2[:, 2] ** 2).clamp_min(1e-30)
+    c22s = torch.where(bounded, c22, torch.full_like(c22, -1.0))
+    ex = torch.sqrt((c02 * c02 - c00 * c22s).clamp_min(0.0)) / (-c22s)
+    ey = torch.sqrt((c12 * c12 - c11 * c22s).clamp_min(0.0)) / (-c22s)
+    mx, my = c02 / c22s, c12 / c22s
+    ctr = proj["centre"]
+    rd = torch.sqrt(log_t)  # fallback disc: 2 d^2 <= 2 log(255 o)
+    xmin = torch.minimum(mx - ex, ctr[:, 0] - rd)
+    xmax = torch.maximum(mx + ex, ctr[:, 0] + rd)
+    ymin = torch.minimum(my - ey, ctr[:, 1] - rd)
+    ymax = torch.maximum(my + ey, ctr[:, 1] + rd)
+    big = float(max(camera.width, camera.height)) * 4.0 + 10.0
+    xmin = torch.where(bounded, xmin, torch.full_like(xmin, -big)).clamp(-big, big)
+    xmax = torch.where(bounded, xmax, torch.full_like(xmax, big)).clamp(-big, big)
+    ymin = torch.where(bounded, ymin, torch.full_like(ymin, -big)).clamp(-big, big)
+    ymax = torch.where(bounded, ymax, torch.full_like(ymax, big)).clamp(-big, big)
+    pad = 1e-3
+    x0 = torch.ceil(xmin - 0.5 - pad).long().clamp_min(0)
+    x1 = torch.floor(xmax - 0.5 + pad).long().clamp_max(camera.width - 1)
+    y0 = torch.ceil(ymin - 0.5 - pad).long().clamp_min(0)
+    y1 = torch.floor(ymax - 0.5 + pad).long().clamp_max(camera.height - 1)
+    valid = (proj["z"] >= near) & (o >= ALPHA_MIN) & (x1 >= x0) & (y1 >= y0)
+    radii = torch.where(valid, torch.maximum(xmax - xmin, ymax - ymin) * 0.5, torch.zeros_like(xmin))
+    return x0, x1, y0, y1, valid, radii
+
+
+def _pair_alpha(g, x, y, near: float):
+    """Alpha and hit depth of packed pairs from gathered per-splat rows ``g`` (see _pack_rows)."""
+    c0 = g[:, 0] + x * g[:, 3] + y * g[:, 6]
+    c1 = g[:, 1] + x * g[:, 4] + y * g[:, 7]
+    c2 = g[:, 2] + x * g[:, 5] + y * g[:, 8]
+    tiny = 1e-30 if c2.dtype == torch.float64 else 1e-20
+    c2 = torch.where(c2.abs() > tiny, c2, torch.full_like(c2, tiny))
+    inv = 1.0 / c2
+    u = c0 * inv
+    v = c1 * inv
+    rho3 = u * u + v * v
+    dx = x - g[:, 10]
+    dy = y - g[:, 11]
+    rho2 = 2.0 * (dx * dx + dy * dy)
+    use3 = (rho3 <= rho2).detach()
+    rho = torch.where(use3, rho3, rho2)
+    depth = torch.where(use3, g[:, 9] * inv, g[:, 12])
+    alpha = torch.clamp_max(g[:, 13] * torch.exp(-0.5 * rho), ALPHA_MAX)
+    return alpha, depth
+
+
+def _pack_rows(proj, opacities):
+    """(N, 14) per-splat rows: A, B, C, det, centre x, centre y, centre depth, opacity."""
+    return torch.cat([proj["A"], proj["B"], proj["C"], proj["det"][:, None], proj["centre"],
+                      proj["z"][:, None], opacities[:, None]], 1)
+
+
+def _candidates(x0, x1, y0, y1, valid, z, width: int):
+    """All (splat, pixel) pairs inside the boxes, splat-major in front-to-back order."""
+    dev = z.device
+    idx = torch.nonzero(valid).squeeze(1)
+    idx = idx[torch.argsort(z[idx], stable=True)]
+    bw = (x1 - x0 + 1)[idx]
+    cnt = bw * (y1 - y0 + 1)[idx]
+    total = int(cnt.sum())
+    sid_local = torch.repeat_interleave(torch.arange(idx.numel(), device=dev), cnt, output_size=total)
+    first = torch.cumsum(cnt, 0) - cnt
+    off = torch.arange(total, device=dev) - first[sid_local]
+    bw_p = bw[sid_local]
+    ys = y0[idx][sid_local] + torch.div(off, bw_p, rounding_mode="floor")
+    xs = x0[idx][sid_local] + off - torch.div(off, bw_p, rounding_mode="floor") * bw_p
+    return idx[sid_local], ys * width + xs
+
+
+def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+              features: torch.Tensor, camera: Camera, background: torch.Tensor | None = None, *,
+              near: float = 0.01, depth_ratio: float = 0.0, distortion_near: float = 0.2,
+              distortion_far: float = 100.0, screen_offsets: torch.Tensor | None = None) -> RasterOutput:
+    """Render N splats with C-channel ``features`` into ``camera``.
+
+    ``screen_offsets`` (N, 2), optional, is added to each splat's footprint position in pixels; pass zeros
+    with requires_grad to read the screen-space positional gradient (densification statistic).
+    ``depth_ratio`` blends expected (0) and median (1) depth for ``normal_from_depth``.
+    """
+    n = check_splats(means, quats, scales, opacities, features)
+    H, W = camera.height, camera.width
+    dev, dt = means.device, means.dtype
+    cam = camera if (camera.device == dev and camera.dtype == dt) else camera.to(dev, dt)
+    proj = project_splats(means, quats, scales, opacities, cam)
+
+    # ---- no-grad: bounds, candidates, exact alpha test, sort by pixel, stop at T < 1e-4 ----
+    with torch.no_grad():
+        detached = {k: v.detach() for k, v in proj.items()}
+        x0, x1, y0, y1, valid, radii = _screen_bounds(detached, opacities, cam, near)
+        sid, pix = _candidates(x0, x1, y0, y1, valid, detached["z"], W)
+        rows = _pack_rows(detached, opacities.detach())
+        px = (pix % W).to(dt) + 0.5
+        py = torch.div(pix, W, rounding_mode="floor").to(dt) + 0.5
+        if screen_offsets is not None:
+            so = screen_offsets.detach()
+            px, py = px - so[sid, 0], py - so[sid, 1]
+        alpha, depth = _pair_alpha(rows[sid], px, py, near)
+        keep = (alpha >= ALPHA_MIN) & (depth >= near)
+        sid, pix, alpha = sid[keep], pix[keep], alpha[keep]
+        order = torch.argsort(pix, stable=True)
+        sid, pix, alpha = sid[order], pix[order], alpha[order]
+        segs = Segments(pix, H * W)
+        log_after = segs.exclusive_cumsum(torch.log1p(-alpha).double()) + torch.log1p(-alpha).double()
+        live = log_after >= math.log(T_STOP)
+        sid, pix = sid[live], pix[live]
+        segs = Segments(pix, H * W)
+        visible = torch.zeros(n, dtype=torch.bool, device=dev)
+        visible[sid] = True
+
+    # ---- with gradients, survivors only ----
+    rows = _pack_rows(proj, opacities)
+    g = rows[sid]
+    px = (pix % W).to(dt) + 0.5
+    py = torch.div(pix, W, rounding_mode="floor").to(dt) + 0.5
+    if screen_offsets is not None:
+        px = px - screen_offsets[sid, 0]
+        py = py - screen_offsets[sid, 1]
+    alpha, depth = _pair_alpha(g, px, py, near)
+    la = torch.log1p(-alpha)
+    trans = torch.exp(segs.exclusive_cumsum(la))
+    w = alpha * trans
+    a_ndc = distortion_far / (distortion_far - distortion_near)
+    m = a_ndc * (1.0 - distortion_near / depth)
+    attrs = torch.cat([features, proj["normal"]], 1)[sid]
+    C = features.shape[1]
+    wm = w * m
+    prefix = segs.exclusive_cumsum(torch.stack([w, wm, wm * m], 1))
+    dist_pair = w * (m * m * prefix[:, 0] + prefix[:, 2] - 2.0 * m * prefix[:, 1])
+    acc = segs.sum(torch.cat([w[:, None] * attrs, (w * depth)[:, None], dist_pair[:, None], la[:, None]], 1))
+    t_final = torch.exp(acc[:, C + 5])
+    alpha_img = 1.0 - t_final
+    feat = acc[:, :C]
+    if background is not None:
+        feat = feat + t_final[:, None] * background.to(dev, dt)[None, :]
+    depth_exp = acc[:, C + 3] / alpha_img.clamp_min(1e-10)
+    with torch.no_grad():
+        cand = torch.where(trans > 0.5, torch.arange(sid.numel(), device=dev), torch.full_like(sid, -1))
+        last = torch.full((H * W,), -1, dtype=torch.long, device=dev).scatter_reduce(0, pix, cand, "amax")
+        # never crossing 0.5 still has a last contributor: T > 0.5 holds for the first pair of each pixel
+        has = last >= 0
+    if sid.numel():
+        med = torch.where(has, depth[last.clamp_min(0)], torch.zeros((), dtype=dt, device=dev))
+    else:
+        med = torch.zeros(H * W, dtype=dt, device=dev) + 0.0 * depth.sum()
+    out_depth_exp = depth_exp.reshape(H, W)
+    out_med = med.reshape(H, W)
+    surf = out_depth_exp * (1.0 - depth_ratio) + out_med * depth_ratio if depth_ratio else out_depth_exp
+    return RasterOutput(
+        features=feat.reshape(H, W, C), alpha=alpha_img.reshape(H, W), normal=acc[:, C:C + 3].reshape(H, W, 3),
+        depth_expected=out_depth_exp, depth_median=out_med, distortion=acc[:, C + 4].reshape(H, W),
+        normal_from_depth=normal_from_depth(surf, cam), visible=visible, radii=radii, num_pairs=int(sid.numel()))
+
+
+def normal_from_depth(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """World-space unit normals (facing the camera) from a camera-z depth map by central differences;
+    the one-pixel border is zero."""
+    H, W = depth.shape
+    dev, dt = depth.device, depth.dtype
+    ys = torch.arange(H, device=dev, dtype=dt) + 0.5
+    xs = torch.arange(W, device=dev, dtype=dt) + 0.5
+    y, x = torch.meshgrid(ys, xs, indexing="ij")
+    d_cam = torch.stack([(x - camera.cx) / camera.focal, (y - camera.cy) / camera.focal, torch.ones_like(x)], -1)
+    d_world = d_cam @ camera.c2w[:3, :3].to(dev, dt).T
+    pts = camera.center.to(dev, dt) + depth[..., None] * d_world
+    out = torch.zeros(H, W, 3, dtype=dt, device=dev)
+    if H < 3 or W < 3:
+        return out
+    dy = pts[2:, 1:-1] - pts[:-2, 1:-1]  # along image rows (down)
+    dx = pts[1:-1, 2:] - pts[1:-1, :-2]  # along columns (right)
+    n = torch.linalg.cross(dy, dx)  # down x right = towards the camera
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return torch.nn.functional.pad(n.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
