@@ -1,33 +1,23 @@
 """Image metrics of the benchmark: PSNR, SSIM and LPIPS (VGG, AlexNet), numpy or torch H x W x C in [0, 1].
 
-Imports are lazy so that ``import benchmark.metrics`` stays cheap; torch loads on first use.
+Importing this package does not import torch (it loads on first use). The submodules are imported here,
+eagerly, so that the names ``lpips``, ``psnr`` and ``ssim`` below are always the functions: a later
+``import benchmark.metrics.lpips`` would otherwise rebind the package attribute to the module.
 """
 from __future__ import annotations
 
+from .lpips import get_model, lpips
+from .lpips_weights import lpips_weights_info
 from .psnr import mse, psnr
 from .ssim import ssim, ssim_map
 
 
-def lpips(pred, gt, net: str = "vgg", input_range: str = "[-1,1]") -> float:
-    """LPIPS distance; see :func:`benchmark.metrics.lpips.lpips`."""
-    from .lpips import lpips as _lpips
-
-    return _lpips(pred, gt, net=net, input_range=input_range)
-
-
-def lpips_weights_info(net: str = "vgg") -> dict:
-    """Provenance of the LPIPS weights for result files; see :mod:`benchmark.metrics.lpips_weights`."""
-    from .lpips_weights import lpips_weights_info as _info
-
-    return _info(net)
-
-
 def __getattr__(name):
-    if name == "LPIPSModel":
-        from .lpips import LPIPSModel
+    if name == "LPIPSModel":  # built on first use so that torch loads lazily
+        import importlib
 
-        return LPIPSModel
+        return importlib.import_module(f"{__name__}.lpips").LPIPSModel
     raise AttributeError(name)
 
 
-__all__ = ["mse", "psnr", "ssim", "ssim_map", "lpips", "lpips_weights_info", "LPIPSModel"]
+__all__ = ["mse", "psnr", "ssim", "ssim_map", "lpips", "get_model", "lpips_weights_info", "LPIPSModel"]

@@ -119,6 +119,7 @@ def __getattr__(name):
     # LPIPSModel is built lazily so that importing this module does not import torch.
     if name == "LPIPSModel":
         cls = _module_class()
+        cls.__qualname__ = "LPIPSModel"
         globals()["LPIPSModel"] = cls
         return cls
     raise AttributeError(name)
