@@ -103,6 +103,8 @@ def test_cameras(n: int, radius: float, target=(0.0, 0.0, 0.0), elevation_deg=(1
     test view never coincides with a training view.
     """
     lo, hi = _check_ring(n, radius, elevation_deg)
+    if n == 0:
+        return []
     rng = np.random.default_rng([int(seed), 0x74657374])
     avoid_dirs = camera_directions(list(avoid), target) if avoid is not None else np.zeros((0, 3))
     cos_min = math.cos(math.radians(min_separation_deg))

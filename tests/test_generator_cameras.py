@@ -116,6 +116,7 @@ def test_bad_camera_arguments():
         train_cameras(4, 1.0, elevation_deg=(60, 10))
     with pytest.raises(ValueError):
         intrinsics(0.0, 10, 10)
+    assert train_cameras(0, 1.0) == [] and make_test_cameras(0, 1.0) == []
 
 
 def test_transforms_dict_is_readable_by_the_layout_reader(tmp_path):
