@@ -185,3 +185,40 @@ def test_render_still_is_atomic_and_png_rgba(tmp_path, env_file):
     assert img.shape == (16, 16, 4)
     assert np.all(img[..., 3] == 0.0)  # film transparent, nothing in the scene: zero coverage
     assert sorted(p.name for p in out.parent.iterdir()) == ["r_0000.png"]
+
+
+def test_world_radiance_units_lambertian_plane(tmp_path):
+    """A white Lambertian plane facing +Z, lit by a prepared default light, shows albedo * E / pi with
+    E = sum over texels of L * (exact cosine-weighted solid angle of the upper-hemisphere part): the file's
+    values are radiance at world strength 1, in the mapping direction_to_uv defines."""
+    from generator.lights import prepare_envmap, resolve_light
+
+    env = prepare_envmap(resolve_light("courtyard"))
+    path = tmp_path / "courtyard.hdr"
+    write_hdr(path, env)
+    env = read_envmap(path)
+    theta = np.linspace(0.0, math.pi / 2, 9)  # the 8 upper rows
+    cos_w = (np.sin(theta[1:]) ** 2 - np.sin(theta[:-1]) ** 2) / 2 * (2 * math.pi / 32)
+    expected = 0.8 * (env[:8] * cos_w[:, None, None]).sum(axis=(0, 1)) / math.pi
+
+    scene = _fresh_scene()
+    bcyc.configure(scene, resolution=16, spp=64, seed=0, threads=2)
+    scene.cycles.use_denoising = False
+    scene.cycles.max_bounces = 0  # direct light only: nothing else in the scene to bounce from
+    bcyc.set_exr_output(scene)
+    bworld.set_environment(scene, path)
+    bpy.ops.mesh.primitive_plane_add(size=200.0)
+    mat = bpy.data.materials.new("white")
+    if mat.node_tree is None:
+        mat.use_nodes = True
+    nodes = mat.node_tree.nodes
+    nodes.clear()
+    diffuse = nodes.new("ShaderNodeBsdfDiffuse")
+    diffuse.inputs["Color"].default_value = (0.8, 0.8, 0.8, 1.0)
+    out = nodes.new("ShaderNodeOutputMaterial")
+    mat.node_tree.links.new(diffuse.outputs["BSDF"], out.inputs["Surface"])
+    bpy.context.active_object.data.materials.append(mat)
+    bcam.set_camera(scene, look_at((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)), 0.5)
+    img = read_image(bcyc.render_still(scene, tmp_path / "plane.exr"))[..., :3]
+    print("plane radiance", img.reshape(-1, 3).mean(axis=0), "expected", expected)
+    np.testing.assert_allclose(img.reshape(-1, 3).mean(axis=0), expected, rtol=0.01)
