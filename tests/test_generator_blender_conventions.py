@@ -185,6 +185,14 @@ def test_render_still_is_atomic_and_png_rgba(tmp_path, env_file):
     assert img.shape == (16, 16, 4)
     assert np.all(img[..., 3] == 0.0)  # film transparent, nothing in the scene: zero coverage
     assert sorted(p.name for p in out.parent.iterdir()) == ["r_0000.png"]
+    bcyc.set_exr_output(scene, multilayer=True)
+    ml = bcyc.render_still(scene, tmp_path / "sub" / "r_0000.gt.exr")
+    import OpenEXR
+
+    with OpenEXR.File(str(ml)) as f:
+        names = list(f.channels())
+    assert any(n.endswith("Combined.R") or n.endswith("Combined") for n in names), names
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r_0000.gt.exr", "r_0000.png"]
 
 
 def test_world_radiance_units_lambertian_plane(tmp_path):

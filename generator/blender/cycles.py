@@ -65,7 +65,7 @@ def set_exr_output(bpy_scene, *, multilayer: bool = False, half: bool = False) -
     """Still output as linear OpenEXR (scene-referred: no view transform), RGBA or multilayer."""
     ims = bpy_scene.render.image_settings
     ims.media_type = "MULTI_LAYER_IMAGE" if multilayer else "IMAGE"
-    ims.file_format = "OPEN_MULTILAYER" if multilayer else "OPEN_EXR"
+    ims.file_format = "OPEN_EXR_MULTILAYER" if multilayer else "OPEN_EXR"
     if not multilayer:
         ims.color_mode = "RGBA"
     ims.color_depth = "16" if half else "32"
