@@ -119,6 +119,12 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
         raise UserError(f"no predictions to score in {pred_dir}: expected nvs/, albedo/, roughness/ or "
                         f"relight/{test_light}/{hint}")
 
+    # fail fast, before any metric runs: every present kind needs a file for every test view
+    for kind, present in kinds.items():
+        if present:
+            for frame in frames:
+                pred.path(kind, frame.stem, test_light if kind == "relight" else None)
+
     per_image: dict[str, dict[str, dict[str, float]]] = {k: {} for k in ("nvs", "albedo", "roughness", "relight", "normal")}
     albedo_pred, albedo_gt, albedo_mask, albedo_stems = [], [], [], []
     for frame in frames:

@@ -1,0 +1,161 @@
+"""Aggregation of result files: mean +- std over scenes and seeds per (configuration, method).
+
+Failed runs are counted per group (and listed) but never averaged in and never silently dropped: every
+table row and chart says how many runs failed. The std is the population std (numpy's default, ddof=0)
+over all successful (scene, seed) runs of the group.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from lumibench.errors import UserError
+
+from .results import read_result
+
+
+@dataclass(frozen=True)
+class Column:
+    key: str            # "task.metric" inside result["metrics"]
+    group: str          # table header group
+    label: str          # column label
+    higher_better: bool
+    digits: int
+
+
+SHORT_GROUP = {"Novel View Synthesis": "NVS", "ΔPSNR NVS→Relight": "ΔPSNR"}
+
+# laid out like the paper's supplementary table: NVS, albedo, roughness, relight, Delta PSNR
+COLUMNS = (
+    Column("nvs.psnr", "Novel View Synthesis", "PSNR", True, 2),
+    Column("nvs.ssim", "Novel View Synthesis", "SSIM", True, 3),
+    Column("nvs.lpips", "Novel View Synthesis", "LPIPS", False, 3),
+    Column("albedo.psnr", "Albedo", "PSNR", True, 2),
+    Column("albedo.ssim", "Albedo", "SSIM", True, 3),
+    Column("albedo.lpips", "Albedo", "LPIPS", False, 3),
+    Column("roughness.mse", "Roughness", "MSE", False, 4),
+    Column("relight.psnr", "Relight", "PSNR", True, 2),
+    Column("relight.ssim", "Relight", "SSIM", True, 3),
+    Column("relight.lpips", "Relight", "LPIPS", False, 3),
+    Column("delta_psnr.percent", "ΔPSNR NVS→Relight", "%", False, 1),
+)
+EXTRA_COLUMNS = (
+    Column("separation.iou", "Separation", "IoU", True, 3),
+    Column("separation.balanced_accuracy", "Separation", "bal. acc.", True, 3),
+    Column("normal.mae_deg", "Normal", "MAE °", False, 1),
+)
+
+
+def metric_value(result: dict[str, Any], key: str) -> float | None:
+    task, name = key.split(".")
+    block = (result.get("metrics") or {}).get(task)
+    if not isinstance(block, dict):
+        return None
+    value = block.get(name)
+    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+
+
+def training_seconds(result: dict[str, Any]) -> float | None:
+    """Total of the per-stage timings a method reported (None when it reported none)."""
+    timings = result.get("timings")
+    return float(sum(timings.values())) if timings else None
+
+
+def gaussian_count(result: dict[str, Any]) -> float | None:
+    size = result.get("model_size") or {}
+    return float(size["gaussians"]) if "gaussians" in size else None
+
+
+@dataclass
+class Stat:
+    mean: float
+    std: float
+    n: int
+
+
+@dataclass
+class Group:
+    configuration: str
+    method: str
+    stats: dict[str, Stat] = field(default_factory=dict)
+    n_ok: int = 0
+    failures: list[dict[str, Any]] = field(default_factory=list)
+    scenes: set[str] = field(default_factory=set)
+    seeds: set[int] = field(default_factory=set)
+
+    @property
+    def n_failed(self) -> int:
+        return len(self.failures)
+
+
+def configuration_label(result: dict[str, Any]) -> str:
+    return f"{result['train_light']}->{result['test_light']}"
+
+
+def load_results(paths: Iterable[str | Path]) -> list[dict[str, Any]]:
+    """Read and validate result files; a missing one is an error naming it (the grid writes every one)."""
+    out = []
+    for p in paths:
+        if not Path(p).is_file():
+            raise UserError(f"result file missing: {p} (run the grid again: it resumes)")
+        out.append(read_result(p) | {"_path": str(p)})
+    return out
+
+
+def check_consistent(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """All results of one table must share protocol, LPIPS net and weights; return that config."""
+    ok = [r for r in results if r["status"] == "ok"]
+    protocols = {r["protocol"] for r in results}
+    if len(protocols) > 1:
+        raise UserError(f"results mix protocols {sorted(protocols)}: one table states one protocol")
+    nets = {(r["metric_config"]["lpips_net"], r["metric_config"]["lpips_weights"]["sha256"]) for r in ok}
+    if len(nets) > 1:
+        raise UserError(f"results mix LPIPS networks or weights: {sorted(nets)}")
+    first = ok[0]["metric_config"] if ok else {}
+    return {"protocol": next(iter(protocols)) if protocols else None, "metric_config": first}
+
+
+def aggregate(results: list[dict[str, Any]]) -> list[Group]:
+    """Groups in first-seen order of configuration, then method."""
+    groups: dict[tuple[str, str], Group] = {}
+    values: dict[tuple[str, str], dict[str, list[float]]] = {}
+    for r in results:
+        key = (configuration_label(r), r["method"])
+        g = groups.setdefault(key, Group(*key))
+        vals = values.setdefault(key, {})
+        g.scenes.add(r["scene"])
+        g.seeds.add(r["seed"])
+        if r["status"] != "ok":
+            g.failures.append({"scene": r["scene"], "seed": r["seed"], "error": r.get("error")})
+            continue
+        g.n_ok += 1
+        for col in COLUMNS + EXTRA_COLUMNS:
+            v = metric_value(r, col.key)
+            if v is not None:
+                vals.setdefault(col.key, []).append(v)
+        t = training_seconds(r)
+        if t is not None:
+            vals.setdefault("time.seconds", []).append(t)
+        n = gaussian_count(r)
+        if n is not None:
+            vals.setdefault("model.gaussians", []).append(n)
+    for key, g in groups.items():
+        for metric, vs in values[key].items():
+            arr = np.asarray(vs, dtype=np.float64)
+            g.stats[metric] = Stat(float(arr.mean()), float(arr.std()), int(arr.size))
+    return list(groups.values())
+
+
+def best_methods(groups: list[Group], configuration: str, column: Column) -> set[str]:
+    """Methods holding the best mean of ``column`` in ``configuration`` (ties all bold), by direction."""
+    cands = [(g.stats[column.key].mean, g.method) for g in groups
+             if g.configuration == configuration and column.key in g.stats]
+    if len(cands) < 2:
+        return set()
+    rounded = [(round(v, column.digits), m) for v, m in cands]  # a tie as displayed is a tie
+    best = max(v for v, _ in rounded) if column.higher_better else min(v for v, _ in rounded)
+    return {m for v, m in rounded if v == best}

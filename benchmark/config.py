@@ -1,0 +1,120 @@
+"""Benchmark grids (`configs/benchmark/<profile>.yaml`): scenes, train -> test configurations, methods, seeds.
+
+Every key is validated with lumibench.config.Node, so a typo or a wrong type is reported with the file
+and the key, before any job starts.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from lumibench.config import Node, load_yaml
+from lumibench.errors import UserError
+from lumibench.profiles import CONFIG_DIR, available_profiles
+
+from .protocol import PROTOCOLS
+
+LPIPS_NETS = ("vgg", "alex")
+
+
+@dataclass(frozen=True)
+class Configuration:
+    train: str
+    test: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.train}->{self.test}"
+
+    @property
+    def slug(self) -> str:
+        return f"{self.train}_to_{self.test}"
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    source: str
+    profile: str
+    protocol: str
+    lpips_net: str
+    scenes: tuple[str, ...]
+    configurations: tuple[Configuration, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+
+    def with_methods(self, methods: list[str] | None) -> "BenchmarkConfig":
+        if not methods:
+            return self
+        _check_methods(methods, "--methods")
+        return replace(self, methods=tuple(methods))
+
+
+def config_path(profile: str) -> Path:
+    return CONFIG_DIR / "benchmark" / f"{profile}.yaml"
+
+
+def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
+    """Load a grid by profile name (configs/benchmark/<name>.yaml) or by path."""
+    path = Path(profile_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        path = config_path(str(profile_or_path))
+        if not path.is_file():
+            known = sorted(p.stem for p in (CONFIG_DIR / "benchmark").glob("*.yaml"))
+            raise UserError(f"no benchmark grid for profile '{profile_or_path}' (known: {', '.join(known)})")
+    root = Node(load_yaml(path), str(path))
+    root.reject_unknown(["profile", "protocol", "lpips_net", "scenes", "configurations", "methods", "seeds"])
+    profile = root.get("profile", str, choices=available_profiles())
+    protocol = root.get("protocol", str, "lumimotion", choices=list(PROTOCOLS))
+    lpips_net = root.get("lpips_net", str, "vgg", choices=LPIPS_NETS)
+    scenes = _strings(root, "scenes")
+    # scene names are checked by the job grid: a rendered scene needs no spec in configs/scenes/
+    known_lights = _known_lights()
+    configurations = []
+    for node in root.children("configurations"):
+        node.reject_unknown(["train", "test"])
+        train, test = node.get("train", str), node.get("test", str)
+        for key, light in (("train", train), ("test", test)):
+            if known_lights and light not in known_lights and not light.endswith((".hdr", ".exr")):
+                raise node.error(key, f"names an unknown light '{light}' (known: {', '.join(known_lights)})")
+        if train == test:
+            raise node.error("test", f"must differ from the train light ('{train}')")
+        configurations.append(Configuration(train, test))
+    if not configurations:
+        raise root.error("configurations", "must list at least one {train, test} pair")
+    methods = _strings(root, "methods")
+    _check_methods(methods, f"{path}: key 'methods'")
+    seeds = root.get("seeds", list, [0])
+    if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
+        raise root.error("seeds", f"must be a non-empty list of non-negative integers, got {seeds!r}")
+    return BenchmarkConfig(str(path), profile, protocol, lpips_net, tuple(scenes), tuple(configurations),
+                           tuple(methods), tuple(seeds))
+
+
+def known_scenes() -> list[str]:
+    return sorted(p.stem for p in (CONFIG_DIR / "scenes").glob("*.yaml"))
+
+
+def _strings(root: Node, key: str) -> list[str]:
+    values = root.get(key, list)
+    if not values or not all(isinstance(v, str) and v for v in values):
+        raise root.error(key, f"must be a non-empty list of names, got {values!r}")
+    if len(set(values)) != len(values):
+        raise root.error(key, f"lists a name twice: {values!r}")
+    return list(values)
+
+
+def _check_methods(methods: list[str], where: str) -> None:
+    from baselines_adapters.registry import available
+
+    for m in methods:
+        if m not in available():
+            raise UserError(f"{where}: unknown method '{m}' (known: {', '.join(available())})")
+
+
+def _known_lights() -> list[str]:
+    path = CONFIG_DIR / "lights.yaml"
+    if not path.is_file():
+        return []
+    data = load_yaml(path)
+    lights = data.get("lights") if isinstance(data, dict) else None
+    return sorted(lights) if isinstance(lights, dict) else []

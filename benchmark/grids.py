@@ -1,0 +1,99 @@
+"""Image grids: ground truth next to prediction (albedo as scored, roughness, relight; env maps).
+
+Built from a result file alone: it names the scene and predictions folder, and holds the albedo scale,
+so the grid shows exactly what was scored (aligned albedo, GT-alpha masking).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lumibench import layout
+from lumibench.errors import UserError
+from lumibench.io import read_image
+
+from .predictions import PredictionFolder, srgb_decode, srgb_encode
+from .score import read_gt, read_lit
+
+MAX_VIEWS = 3
+
+
+def _tonemap(env: np.ndarray) -> np.ndarray:
+    """Reinhard then sRGB, normalised by the 99th percentile: bright suns and dim skies both show."""
+    x = env / max(float(np.percentile(env, 99)), 1e-6)
+    return srgb_encode(x / (1.0 + x) * 2.0)
+
+
+def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -> Path:
+    """Write a GT-vs-prediction grid PNG for one scored run; returns ``path``."""
+    from .charts import _plt, _save
+
+    if result.get("status") != "ok":
+        raise UserError(f"no image grid for a failed run ({result.get('method')} {result.get('scene')})")
+    scene = Path(result["inputs"]["scene_dir"])
+    pred = PredictionFolder(Path(result["inputs"]["pred_dir"]))
+    train, test = result["train_light"], result["test_light"]
+    scale = np.asarray((result["metrics"].get("albedo") or {}).get("scale", [1, 1, 1]), dtype=np.float32)
+    frames = layout.read_transforms(scene, "test").frames[:max_views]
+    cols = [("albedo", "GT albedo"), ("albedo_p", "albedo (aligned)"), ("rough", "GT roughness"),
+            ("rough_p", "roughness"), ("relight", f"GT {test}"), ("relight_p", f"relit {test}")]
+    plt = _plt()
+    fig, axes = plt.subplots(len(frames) + 1, len(cols), figsize=(1.9 * len(cols), 1.95 * (len(frames) + 1)),
+                             squeeze=False)
+    for i, frame in enumerate(frames):
+        fp, stem = frame.file_path, frame.stem
+        _, alpha = read_lit(scene, train, fp)
+        shape = alpha.shape[:2]
+        imgs: dict[str, np.ndarray | None] = {
+            "albedo": srgb_encode(read_gt(scene, "albedo", fp)) * alpha,
+            "rough": read_gt(scene, "roughness", fp)[..., 0] * alpha[..., 0],
+            "relight": read_lit(scene, test, fp)[0] * alpha,
+            "albedo_p": None, "rough_p": None, "relight_p": None,
+        }
+        if pred.has("albedo"):
+            lin = srgb_decode(pred.read("albedo", stem, shape)) * scale
+            imgs["albedo_p"] = srgb_encode(lin) * alpha
+        if pred.has("roughness"):
+            imgs["rough_p"] = pred.read("roughness", stem, shape)[..., 0] * alpha[..., 0]
+        if pred.has("relight", test):
+            imgs["relight_p"] = pred.read("relight", stem, shape, test) * alpha
+        for j, (key, title) in enumerate(cols):
+            ax = axes[i, j]
+            img = imgs[key]
+            if img is None:
+                ax.text(0.5, 0.5, "not predicted", ha="center", va="center", fontsize=8, color="0.4")
+            elif img.ndim == 2:
+                ax.imshow(img, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+            else:
+                ax.imshow(np.clip(img, 0, 1), interpolation="nearest")
+            if i == 0:
+                ax.set_title(title, fontsize=8)
+            ax.set_axis_off()
+        axes[i, 0].text(-0.08, 0.5, stem, transform=axes[i, 0].transAxes, rotation=90, va="center", ha="right",
+                        fontsize=7)
+    env_row = axes[len(frames)]
+    for ax in env_row:
+        ax.set_axis_off()
+    true_env = _true_envmap(scene, train)
+    est_env = pred.envmap(train)
+    for ax, env, title in ((env_row[0], true_env, f"true env ({train})"), (env_row[2], est_env, "estimated env")):
+        if env is None:
+            ax.text(0.5, 0.5, "not provided", ha="center", va="center", fontsize=8, color="0.4")
+        else:
+            ax.imshow(_tonemap(env), interpolation="nearest")
+        ax.set_title(title, fontsize=8)
+    fig.suptitle(f"{result['method']} | {result['scene']} | {train} → {test} | seed {result['seed']}", fontsize=9)
+    return _save(fig, path)
+
+
+def _true_envmap(scene: Path, light: str) -> np.ndarray | None:
+    hdr = layout.envmap_path(scene, light)
+    if hdr.is_file():
+        try:
+            return read_image(hdr)[..., :3]
+        except UserError:
+            pass
+    preview = Path(scene) / f"{light}.png"
+    return srgb_decode(read_image(preview)[..., :3]) if preview.is_file() else None

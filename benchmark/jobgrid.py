@@ -1,0 +1,284 @@
+"""The job grid: dataset-rendering jobs, then (method, scene, train light, seed) jobs, local or on Ray.
+
+A method job runs the adapter once (one predictions folder per method, scene, train light and seed,
+shared by every configuration with that train light, so two jobs never write the same folder) and
+scores each of its configurations into ``RESULTS/runs/<method>/<scene>/<train>_to_<test>/seed<k>/
+results.json``. The grid resumes: a job whose result files all exist, validate and say "ok" is not run
+again (failed ones are retried). A job that fails is recorded as a result with status "failed" and the
+cause (the traceback goes to ``error.log`` beside it); the other jobs go on. Jobs are plain dicts handed
+to a top-level function, so they pickle to worker processes and to Ray workers alike.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import os
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+from lumibench import layout
+from lumibench.errors import UserError
+from lumibench.io import atomic_write_text
+from lumibench.progress import track
+
+from .config import BenchmarkConfig, Configuration, known_scenes
+from .results import failed_result, is_finished, write_result
+
+EXECUTORS = ("local", "ray")
+
+
+@dataclass(frozen=True)
+class Paths:
+    data: Path      # DATA (the generator's root; scenes at DATA/PROFILE/<scene>)
+    runs: Path      # RUNS (predictions and checkpoints at RUNS/PROFILE/<method>/...)
+    results: Path   # RESULTS (this profile's outputs at RESULTS/PROFILE/)
+    profile: str
+
+    @property
+    def out(self) -> Path:
+        return self.results / self.profile
+
+
+def result_path(paths: Paths, method: str, scene: str, conf: Configuration, seed: int) -> Path:
+    return paths.out / "runs" / method / scene / conf.slug / f"seed{seed}" / "results.json"
+
+
+def pred_dir(paths: Paths, method: str, scene: str, train_light: str, seed: int) -> Path:
+    return paths.runs / paths.profile / method / scene / train_light / f"seed{seed}" / "predictions"
+
+
+def render_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
+    """One job per scene whose dataset is missing or unfinished (lumibench.layout.is_complete)."""
+    return [{"kind": "render", "scene": s, "profile": paths.profile, "data": str(paths.data)}
+            for s in config.scenes if not layout.is_complete(layout.scene_dir(paths.data, paths.profile, s))]
+
+
+def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
+    """Every (method, scene, train light, seed) job with the configurations it scores."""
+    jobs = []
+    trains = list(dict.fromkeys(c.train for c in config.configurations))
+    for method in config.methods:
+        for scene in config.scenes:
+            for train in trains:
+                confs = [c for c in config.configurations if c.train == train]
+                for seed in config.seeds:
+                    jobs.append({
+                        "kind": "method", "method": method, "scene": scene, "train": train,
+                        "tests": [c.test for c in confs], "seed": seed, "profile": paths.profile,
+                        "protocol": config.protocol, "lpips_net": config.lpips_net,
+                        "scene_dir": str(layout.scene_dir(paths.data, paths.profile, scene)),
+                        "pred_dir": str(pred_dir(paths, method, scene, train, seed)),
+                        "runs_dir": str(paths.runs / paths.profile),
+                        "results": [str(result_path(paths, method, scene, c, seed)) for c in confs],
+                    })
+    return jobs
+
+
+def job_finished(job: dict[str, Any]) -> bool:
+    return all(is_finished(p) for p in job["results"])
+
+
+def job_label(job: dict[str, Any]) -> str:
+    if job["kind"] == "render":
+        return f"render {job['profile']}/{job['scene']}"
+    return f"{job['method']} {job['scene']} {job['train']}->{','.join(job['tests'])} seed {job['seed']}"
+
+
+def _identity(job: dict[str, Any], test: str, version: str = "unknown") -> dict[str, Any]:
+    return {"method": job["method"], "adapter_version": version, "scene": job["scene"], "train_light": job["train"],
+            "test_light": test, "seed": job["seed"], "protocol": job["protocol"], "profile": job["profile"]}
+
+
+def _cause(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, UserError) else f"{type(exc).__name__}: {exc}"
+
+
+def record_failure(job: dict[str, Any], cause: str, tb: str | None = None, version: str = "unknown") -> None:
+    """Write a failed result for every configuration of ``job`` (and the traceback beside it)."""
+    for test, path in zip(job["tests"], job["results"]):
+        write_result(path, failed_result(_identity(job, test, version), cause))
+        if tb:
+            atomic_write_text(Path(path).with_name("error.log"), tb)
+
+
+def execute(job: dict[str, Any]) -> dict[str, Any]:
+    """Run one job in the current process; never raises (the outcome says what happened)."""
+    if job.get("threads"):
+        try:
+            import torch
+
+            torch.set_num_threads(int(job["threads"]))
+        except ImportError:  # pragma: no cover - torch is a dependency
+            pass
+    if job["kind"] == "render":
+        return _execute_render(job)
+    return _execute_method(job)
+
+
+def _execute_render(job: dict[str, Any]) -> dict[str, Any]:
+    try:
+        from generator.pipeline import render_scene
+
+        render_scene(job["scene"], job["profile"], job["data"], job.get("jobs", 1))
+        scene = layout.scene_dir(job["data"], job["profile"], job["scene"])
+        if not layout.is_complete(scene):
+            raise RuntimeError(f"rendering finished but {scene}/dataset.json does not say complete")
+        return {"status": "ok"}
+    except Exception as exc:  # recorded, reported; the grid goes on
+        return {"status": "failed", "error": _cause(exc), "traceback": traceback.format_exc()}
+
+
+def _execute_method(job: dict[str, Any]) -> dict[str, Any]:
+    from baselines_adapters.registry import get_adapter
+
+    from .predictions import PredictionFolder
+    from .score import score
+
+    version = "unknown"
+    try:
+        adapter = get_adapter(job["method"])
+        version = adapter.version
+        scene = Path(job["scene_dir"])
+        if not layout.is_complete(scene):
+            raise UserError(f"dataset {scene} is missing or incomplete (render it: make dataset)")
+        pdir = Path(job["pred_dir"])
+        if not _predictions_reusable(pdir, job, version):
+            adapter.run(scene, job["train"], job["tests"], job["seed"], job["profile"], pdir, job["runs_dir"])
+        PredictionFolder(pdir).meta()
+    except Exception as exc:
+        record_failure(job, _cause(exc), traceback.format_exc(), version)
+        return {"status": "failed", "error": _cause(exc)}
+    failures = []
+    for test, path in zip(job["tests"], job["results"]):
+        try:
+            res = score(scene, pdir, job["train"], test, job["protocol"], job["lpips_net"], job["profile"],
+                        scene_name=job["scene"])
+            write_result(path, res)
+        except Exception as exc:
+            write_result(path, failed_result(_identity(job, test, version), _cause(exc)))
+            atomic_write_text(Path(path).with_name("error.log"), traceback.format_exc())
+            failures.append(_cause(exc))
+    return {"status": "failed", "error": "; ".join(failures)} if failures else {"status": "ok"}
+
+
+def _predictions_reusable(pdir: Path, job: dict[str, Any], version: str) -> bool:
+    import json
+
+    meta = pdir / "meta.json"
+    if not meta.is_file():
+        return False
+    try:
+        m = json.loads(meta.read_text())
+    except json.JSONDecodeError:
+        return False
+    return (m.get("method") == job["method"] and m.get("version") == version and m.get("seed") == job["seed"]
+            and set(job["tests"]) <= set(m.get("test_lights") or job["tests"]))
+
+
+# --------------------------------------------------------------------------------------------- executors
+
+def _run_local(fn: Callable, jobs: list[dict], workers: int) -> Iterator[tuple[dict, dict]]:
+    if workers <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            yield job, fn(job)
+        return
+    ctx = multiprocessing.get_context("spawn")  # torch and fork do not mix
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = {pool.submit(fn, job): job for job in jobs}
+        for fut in cf.as_completed(futures):
+            job = futures[fut]
+            try:
+                yield job, fut.result()
+            except Exception as exc:  # a worker died (e.g. out of memory): record it, carry on
+                yield job, {"status": "failed", "error": f"worker process failed: {_cause(exc)}", "lost": True}
+
+
+def _run_ray(fn: Callable, jobs: list[dict], workers: int) -> Iterator[tuple[dict, dict]]:
+    try:
+        import ray
+    except ImportError:
+        raise UserError("--executor ray needs ray: pip install 'ray[default]' (or use --executor local)") from None
+    if not ray.is_initialized():
+        address = os.environ.get("RAY_ADDRESS") or None
+        try:
+            ray.init(address=address, ignore_reinit_error=True, include_dashboard=False, log_to_driver=False,
+                     num_cpus=None if address else max(workers, 1))
+        except Exception as exc:
+            raise UserError(f"cannot start or reach Ray ({'RAY_ADDRESS=' + address if address else 'local'}): "
+                            f"{type(exc).__name__}: {exc}") from None
+    remote = ray.remote(num_cpus=1, max_retries=0)(fn)
+    pending = {remote.remote(job): job for job in jobs}
+    while pending:
+        done, _ = ray.wait(list(pending), num_returns=1)
+        for ref in done:
+            job = pending.pop(ref)
+            try:
+                yield job, ray.get(ref)
+            except Exception as exc:
+                yield job, {"status": "failed", "error": f"ray task failed: {_cause(exc)}", "lost": True}
+
+
+def run_jobs(jobs: list[dict], executor: str = "local", workers: int = 1, description: str = "jobs",
+             quiet: bool = False) -> list[tuple[dict, dict]]:
+    """Run ``jobs`` with a progress bar; return (job, outcome) pairs. Lost workers are recorded as failures."""
+    if executor not in EXECUTORS:
+        raise UserError(f"unknown executor '{executor}' (known: {', '.join(EXECUTORS)})")
+    if not jobs:
+        return []
+    threads = 1 if workers > 1 else None
+    jobs = [dict(job, threads=threads) for job in jobs]
+    runner = _run_local if executor == "local" else _run_ray
+    outcomes = []
+    for job, outcome in track(runner(execute, jobs, workers), total=len(jobs), description=description,
+                              unit="jobs", disable=quiet):
+        if outcome.get("lost") and job["kind"] == "method":
+            record_failure(job, outcome["error"])
+        outcomes.append((job, outcome))
+    return outcomes
+
+
+@dataclass
+class GridReport:
+    rendered: list[tuple[dict, dict]]
+    executed: list[tuple[dict, dict]]
+    skipped: list[dict]
+
+    @property
+    def failed(self) -> list[tuple[dict, dict]]:
+        return [(j, o) for j, o in self.rendered + self.executed if o["status"] != "ok"]
+
+
+def run_grid(config: BenchmarkConfig, paths: Paths, executor: str = "local", workers: int = 1,
+             render: bool = True, quiet: bool = False) -> GridReport:
+    """Render missing scenes, then run every unfinished method job; return what was done."""
+    rjobs = render_jobs(config, paths)
+    specs = known_scenes()
+    unknown = [j["scene"] for j in rjobs if j["scene"] not in specs]
+    if unknown:
+        raise UserError(f"{config.source}: scene(s) {', '.join(unknown)} neither rendered under "
+                        f"{paths.data}/{paths.profile} nor specified in configs/scenes/ (known: {', '.join(specs)})")
+    if rjobs and not render:
+        missing = ", ".join(j["scene"] for j in rjobs)
+        raise UserError(f"scenes not rendered under {paths.data}/{paths.profile}: {missing} (make dataset, "
+                        f"or drop --no-render)")
+    if len(rjobs) == 1 and executor == "local":  # one scene: let the generator use every worker itself
+        rjobs, workers_r = [dict(rjobs[0], jobs=workers)], 1
+    else:
+        workers_r = workers
+    rendered = run_jobs(rjobs, executor, workers_r, "rendering scenes", quiet)
+    for job, outcome in rendered:
+        if outcome["status"] != "ok":
+            print(f"warning: {job_label(job)} failed: {outcome['error']}", flush=True)
+    mjobs = method_jobs(config, paths)
+    todo = [j for j in mjobs if not job_finished(j)]
+    skipped = [j for j in mjobs if j not in todo]
+    executed = run_jobs(todo, executor, workers, "method jobs", quiet)
+    return GridReport(rendered, executed, skipped)
+
+
+def iter_results(jobs: Iterable[dict]) -> Iterator[Path]:
+    for job in jobs:
+        for p in job["results"]:
+            yield Path(p)

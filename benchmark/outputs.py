@@ -1,0 +1,45 @@
+"""Everything `make eval` shows, built from stored result files: tables, charts, image grids, report."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable
+
+from lumibench.errors import UserError
+from lumibench.io import atomic_write_text
+
+from . import charts, tables
+from .aggregate import aggregate, check_consistent, load_results
+from .grids import image_grid
+from .report import write_report
+
+
+def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title: str = "LumiBench results",
+                  grids: bool = True) -> dict[str, Path]:
+    """Write table.md/.tex/.csv, charts, grids/ and report.html into ``out_dir``; return their paths."""
+    out = Path(out_dir)
+    results = load_results(result_paths)
+    if not results:
+        raise UserError("no result files to build tables from")
+    meta = check_consistent(results)
+    groups = aggregate(results)
+    written = {
+        "table.md": out / "table.md", "table.tex": out / "table.tex", "table.csv": out / "table.csv",
+    }
+    atomic_write_text(written["table.md"], tables.markdown(groups, meta))
+    atomic_write_text(written["table.tex"], tables.latex(groups, meta))
+    atomic_write_text(written["table.csv"], tables.csv_text(groups, meta))
+    chart_paths = charts.all_charts(results, out)
+    grid_paths = []
+    if grids:
+        seen = set()
+        for r in results:  # one grid per (method, scene, configuration): the lowest seed that succeeded
+            key = (r["method"], r["scene"], r["train_light"], r["test_light"])
+            if r["status"] != "ok" or key in seen:
+                continue
+            seen.add(key)
+            name = f"{r['method']}_{r['scene']}_{r['train_light']}_to_{r['test_light']}_seed{r['seed']}.png"
+            grid_paths.append(image_grid(r, out / "grids" / name))
+    report = write_report(out / "report.html", groups, meta, results, chart_paths, grid_paths,
+                          {k: v for k, v in written.items()}, title)
+    return {**written, **{f"{k}.png": v for k, v in chart_paths.items()}, "report.html": report,
+            **{f"grids/{p.name}": p for p in grid_paths}}

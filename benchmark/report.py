@@ -1,0 +1,102 @@
+"""report.html: one self-contained page (relative links) with the table, charts, image grids and failures."""
+from __future__ import annotations
+
+import html
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+from lumibench.io import atomic_write_text
+
+from .aggregate import Group, best_methods
+from .results import now_iso
+from .tables import DASH, _cell, _columns, _configurations, _pretty, _runs, caption
+
+_CSS = """
+body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
+table{border-collapse:collapse;font-size:13px;margin-bottom:18px}
+th,td{border:1px solid #ccc;padding:3px 7px;text-align:right}
+th{background:#f0f0f0} td:first-child,th:first-child{text-align:left}
+td.best{font-weight:bold;background:#e8f5e9} tr.conf td{background:#fafafa;font-weight:bold;text-align:center}
+.fail{color:#b00} img{max-width:100%;border:1px solid #ddd;margin:6px 0}
+.grids img{max-width:560px} code{background:#f4f4f4;padding:1px 3px}
+"""
+
+
+def _rel(path: Path, base: Path) -> str:
+    return html.escape(os.path.relpath(path, base).replace(os.sep, "/"))
+
+
+def html_table(groups: Sequence[Group]) -> str:
+    cols = _columns(groups)
+    spans: list[list[Any]] = []
+    for c in cols:
+        if spans and spans[-1][0] == c.group:
+            spans[-1][1] += 1
+        else:
+            spans.append([c.group, 1])
+    out = ["<table>", "<tr><th rowspan=2>Method</th>" +
+           "".join(f"<th colspan={k}>{html.escape(g)}</th>" for g, k in spans) + "<th rowspan=2>Runs</th></tr>",
+           "<tr>" + "".join(f"<th>{html.escape(c.label)} {'↑' if c.higher_better else '↓'}</th>" for c in cols)
+           + "</tr>"]
+    for conf in _configurations(groups):
+        out.append(f"<tr class=conf><td colspan={len(cols) + 2}>{html.escape(_pretty(conf))}</td></tr>")
+        bold = {c.key: best_methods(list(groups), conf, c) for c in cols}
+        for g in [g for g in groups if g.configuration == conf]:
+            cells = []
+            for c in cols:
+                cell = _cell(g, c)
+                if cell is None:
+                    cells.append(f"<td>{DASH}</td>")
+                else:
+                    cls = " class=best" if g.method in bold[c.key] else ""
+                    cells.append(f"<td{cls}>{cell[0]} ± {cell[1]}</td>")
+            runs = html.escape(_runs(g))
+            runs = f"<span class=fail>{runs}</span>" if g.n_failed else runs
+            out.append(f"<tr><td>{html.escape(g.method)}</td>{''.join(cells)}<td>{runs}</td></tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], results: Sequence[dict],
+                 charts: dict[str, Path], grids: Sequence[Path], tables: dict[str, Path],
+                 title: str = "LumiBench results") -> Path:
+    base = Path(path).parent
+    failed = [r for r in results if r["status"] != "ok"]
+    mc = meta.get("metric_config") or {}
+    weights = mc.get("lpips_weights") or {}
+    parts = [f"<!doctype html><html><head><meta charset=utf-8><title>{html.escape(title)}</title>",
+             f"<style>{_CSS}</style></head><body>", f"<h1>{html.escape(title)}</h1>",
+             f"<p>{html.escape(caption(meta, groups))}</p>",
+             f"<p>LPIPS weights: <code>{html.escape(str(weights.get('file', '?')))}</code> from "
+             f"<code>{html.escape(str(weights.get('package', '?')))}</code>, sha256 "
+             f"<code>{html.escape(str(weights.get('sha256', '?')))}</code>. "
+             f"{len(results)} runs, {len(failed)} failed. Generated {now_iso()}.</p>",
+             "<p>Tables: " + ", ".join(f"<a href='{_rel(p, base)}'>{html.escape(p.name)}</a>"
+                                       for p in tables.values()) + "</p>",
+             "<h2>Table</h2>", html_table(groups)]
+    if failed:
+        parts += ["<h2 class=fail>Failed runs</h2>", "<ul>"]
+        parts += [f"<li class=fail>{html.escape(r['method'])} {html.escape(r['scene'])} "
+                  f"{html.escape(r['train_light'])} → {html.escape(r['test_light'])} seed {r['seed']}: "
+                  f"{html.escape(str(r.get('error')))}</li>" for r in failed]
+        parts.append("</ul>")
+    parts.append("<h2>Charts</h2>")
+    for name, p in charts.items():
+        parts.append(f"<h3>{html.escape(name)}</h3><a href='{_rel(p, base)}'><img src='{_rel(p, base)}' "
+                     f"alt='{html.escape(name)}'></a>")
+    if grids:
+        parts.append("<h2>Ground truth vs prediction</h2><div class=grids>")
+        parts += [f"<a href='{_rel(p, base)}'><img src='{_rel(p, base)}' alt='{html.escape(p.stem)}'></a>"
+                  for p in grids]
+        parts.append("</div>")
+    parts += ["<h2>Per-run result files</h2>", "<ul>"]
+    for r in results:
+        rp = Path(r.get("_path", ""))
+        status = "ok" if r["status"] == "ok" else "<span class=fail>failed</span>"
+        parts.append(f"<li><a href='{_rel(rp, base)}'>{html.escape(r['method'])} / {html.escape(r['scene'])} / "
+                     f"{html.escape(r['train_light'])}→{html.escape(r['test_light'])} / seed {r['seed']}</a> "
+                     f"{status}</li>")
+    parts += ["</ul>", "</body></html>"]
+    atomic_write_text(path, "\n".join(parts))
+    return Path(path)

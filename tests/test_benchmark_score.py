@@ -1,0 +1,138 @@
+"""Scoring prediction folders: analytic PSNR of a noisy oracle, floors worse than GT, clear errors."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from baselines_adapters import get_adapter
+from baselines_adapters.trivial import NoisyGT, expected_psnr
+from benchmark.score import score
+from lumibench.errors import UserError
+from benchmark_fakes import make_fake_scene
+
+SIGMA = 0.02
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_fake_scene(tmp_path_factory.mktemp("bench_scene"), res=32, n_test=3, n_train=3)
+
+
+@pytest.fixture(scope="module")
+def scene_full_alpha(tmp_path_factory):
+    return make_fake_scene(tmp_path_factory.mktemp("bench_scene_full"), res=32, n_test=3, n_train=3,
+                           full_alpha=True, seed=3)
+
+
+@pytest.fixture(scope="module")
+def noisy_strict(scene, tmp_path_factory):
+    pred = NoisyGT(SIGMA).run(scene, "city", ["sunrise"], 7, "ci", tmp_path_factory.mktemp("noisy") / "pred")
+    return score(scene, pred, "city", "sunrise", protocol="strict")
+
+
+def test_noisy_gt_strict_psnr_is_analytic(noisy_strict):
+    # values stay in [0.2, 0.8] and sigma = 0.02: no clipping, so MSE = sigma^2 on the foreground
+    want = expected_psnr(SIGMA)  # 33.98 dB
+    m = noisy_strict["metrics"]
+    assert m["nvs"]["psnr"] == pytest.approx(want, abs=0.3)
+    assert m["relight"]["psnr"] == pytest.approx(want, abs=0.3)
+    assert m["albedo"]["psnr"] == pytest.approx(want, abs=0.5)  # after a (near-identity) median alignment
+    assert m["albedo"]["scale"] == pytest.approx([1, 1, 1], abs=0.02)
+    assert m["roughness"]["mse"] == pytest.approx(SIGMA**2, rel=0.15)
+    assert m["delta_psnr"]["db"] == pytest.approx(m["nvs"]["psnr"] - m["relight"]["psnr"])
+    assert m["separation"]["iou"] == 1.0  # noise of 0.02 never crosses 0.5
+    assert noisy_strict["metric_config"]["lpips_input_range"] == "[-1,1]"
+    assert len(noisy_strict["metric_config"]["lpips_weights"]["sha256"]) == 64
+    assert set(noisy_strict["per_image"]["relight"]) == {"r_0000", "r_0001", "r_0002"}
+    assert noisy_strict["inputs"]["dataset_spec_hash"] == "fake-0-32"
+
+
+def test_noisy_gt_lumimotion_psnr_per_channel_and_masked(scene_full_alpha, tmp_path):
+    # full alpha: the masked full image is the whole image, and per-channel PSNRs all equal the analytic value
+    pred = NoisyGT(SIGMA).run(scene_full_alpha, "city", ["sunrise"], 1, "ci", tmp_path / "pred")
+    for p in [*(tmp_path / "pred").glob("albedo/*"), *(tmp_path / "pred").glob("nvs/*")]:
+        p.unlink()  # score relight (and roughness) only: keeps the test short
+    res = score(scene_full_alpha, pred, "city", "sunrise", protocol="lumimotion")
+    assert res["metrics"]["relight"]["psnr"] == pytest.approx(expected_psnr(SIGMA), abs=0.3)
+    assert res["metrics"]["albedo"] is None and res["metrics"]["delta_psnr"] is None
+    assert res["metric_config"]["lpips_input_range"] == "[0,1]"
+
+
+def test_lit_as_albedo_scores_worse_than_ground_truth(scene, noisy_strict, tmp_path):
+    pred = get_adapter("lit_as_albedo").run(scene, "city", ["sunrise"], 0, "ci", tmp_path / "lit")
+    lit = score(scene, pred, "city", "sunrise", protocol="strict")["metrics"]
+    gt = noisy_strict["metrics"]
+    assert lit["nvs"] is None
+    assert lit["albedo"]["psnr"] < gt["albedo"]["psnr"] - 5
+    assert lit["albedo"]["lpips"] > gt["albedo"]["lpips"]
+    assert lit["relight"]["psnr"] < gt["relight"]["psnr"] - 5
+    assert lit["roughness"]["mse"] > 5 * gt["roughness"]["mse"]
+
+
+def _copy_pred(scene, tmp_path):
+    return get_adapter("mean_albedo").run(scene, "city", ["sunrise"], 0, "ci", tmp_path / "pred")
+
+
+def test_missing_prediction_file_is_named(scene, tmp_path):
+    pred = _copy_pred(scene, tmp_path)
+    (pred / "albedo" / "r_0001.png").unlink()
+    with pytest.raises(UserError, match=r"albedo/r_0001"):
+        score(scene, pred, "city", "sunrise")
+
+
+def test_corrupt_prediction_file_is_named(scene, tmp_path):
+    pred = _copy_pred(scene, tmp_path)
+    bad = pred / "relight" / "sunrise" / "r_0002.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    with pytest.raises(UserError, match=r"r_0002\.png"):
+        score(scene, pred, "city", "sunrise")
+
+
+def test_wrong_size_unknown_light_and_missing_meta(scene, tmp_path):
+    from lumibench.io import write_png
+
+    pred = _copy_pred(scene, tmp_path)
+    write_png(pred / "roughness" / "r_0000.png", np.zeros((8, 8)))
+    with pytest.raises(UserError, match=r"roughness/r_0000\.png is 8x8 pixels"):
+        score(scene, pred, "city", "sunrise")
+    with pytest.raises(UserError, match=r"unknown test light 'moon'.*rendered: city, courtyard, sunrise, sunset"):
+        score(scene, pred, "city", "moon")
+    (pred / "meta.json").unlink()
+    with pytest.raises(UserError, match=r"meta\.json"):
+        score(scene, pred, "city", "sunrise")
+
+
+def test_score_cli_errors_are_one_line(scene, tmp_path):
+    pred = _copy_pred(scene, tmp_path)
+    (pred / "albedo" / "r_0000.png").unlink()
+    cmd = [sys.executable, "-m", "benchmark", "score", "--data", str(scene), "--pred", str(pred),
+           "--train-light", "city", "--test-light", "sunrise", "--out", str(tmp_path / "r.json")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "albedo/r_0000" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_score_cli_writes_a_valid_result(scene, tmp_path):
+    from benchmark.results import read_result
+
+    pred = get_adapter("lit_as_albedo").run(scene, "city", ["sunrise"], 0, "ci", tmp_path / "pred")
+    for p in (pred / "albedo").glob("*"):  # relight and roughness only: keeps the subprocess short
+        p.unlink()
+    out = tmp_path / "res" / "results.json"
+    proc = subprocess.run([sys.executable, "-m", "benchmark", "score", "--data", str(scene), "--pred", str(pred),
+                           "--train-light", "city", "--test-light", "sunrise", "--protocol", "strict",
+                           "--out", str(out)], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    res = read_result(out)
+    assert res["method"] == "lit_as_albedo" and res["protocol"] == "strict" and res["status"] == "ok"
+    assert math.isfinite(res["metrics"]["relight"]["psnr"])
+    assert json.loads(out.read_text())["schema_version"] == 1
