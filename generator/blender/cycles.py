@@ -14,7 +14,8 @@ def configure(bpy_scene, *, resolution: int, spp: int, seed: int, threads: int =
 
     Colour management is plain: "Standard" view transform (sRGB transfer, no tone curve), no look,
     exposure 0, gamma 1; film transparent so that alpha is the coverage of the scene. Output: PNG RGBA
-    8-bit at resolution x resolution, 100 %. Adaptive sampling is off so every pixel gets ``spp``.
+    8-bit at resolution x resolution, 100 %, no metadata stamps (deterministic bytes). Adaptive sampling
+    is off so every pixel gets ``spp``.
     """
     if resolution < 1 or spp < 1 or threads < 0:
         raise ValueError(f"bad render settings: resolution={resolution}, spp={spp}, threads={threads}")
@@ -48,7 +49,15 @@ def configure(bpy_scene, *, resolution: int, spp: int, seed: int, threads: int =
     vs.exposure = 0.0
     vs.gamma = 1.0
     vs.use_curve_mapping = False
+    _no_stamps(r)
     set_png_output(bpy_scene)
+
+
+def _no_stamps(render) -> None:
+    """No date, render time, host or file name in the written files: same inputs, same bytes."""
+    for prop in render.bl_rna.properties:
+        if prop.identifier.startswith("use_stamp") and prop.type == "BOOLEAN" and not prop.is_readonly:
+            setattr(render, prop.identifier, False)
 
 
 def set_png_output(bpy_scene) -> None:
@@ -90,6 +99,8 @@ def render_still(bpy_scene, path) -> Path:
             bpy.ops.render.render(write_still=True, scene=bpy_scene.name)
         if not tmp.is_file():
             raise RuntimeError(f"Blender did not write {tmp}")
+        if path.suffix.lower() == ".png":
+            _strip_png_text(tmp)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -98,6 +109,30 @@ def render_still(bpy_scene, path) -> Path:
     finally:
         r.filepath, r.use_file_extension = old
     return path
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_DROP = {b"tEXt", b"zTXt", b"iTXt", b"tIME"}
+
+
+def _strip_png_text(path: Path) -> None:
+    """Drop PNG text/time chunks: Cycles stamps its render time there even with every stamp option
+    off, which would make identical renders differ in bytes. Pixel chunks are copied untouched."""
+    data = path.read_bytes()
+    if not data.startswith(_PNG_SIGNATURE):
+        raise RuntimeError(f"{path} is not a PNG file")
+    out = [_PNG_SIGNATURE]
+    pos = len(_PNG_SIGNATURE)
+    while pos + 12 <= len(data):
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind = data[pos + 4:pos + 8]
+        end = pos + 12 + length
+        if kind not in _PNG_DROP:
+            out.append(data[pos:end])
+        pos = end
+        if kind == b"IEND":
+            break
+    path.write_bytes(b"".join(out))
 
 
 @contextlib.contextmanager
