@@ -279,7 +279,8 @@ def _two_link_ik(dx: float, dz: float, l1: float, l2: float) -> tuple[float, flo
     start=Param("float", 0.15, "t at which rising starts (sitting still before)"),
     end=Param("float", 0.75, "t at which the figure is upright (standing still after)"),
     thigh_length=Param("float", 0.24, "thigh length in figure heights (the humanoid template's)"),
-    shin_length=Param("float", 0.24, "hip-to-sole below the knee, in figure heights"),
+    shin_length=Param("float", 0.24, "knee to ankle, in figure heights"),
+    ankle_height=Param("float", 0.04, "ankle above the sole, in figure heights"),
     hip_height=Param("float", 0.52, "hip joint height when standing, in figure heights"),
 )
 def _stand_up(t: float, p: dict) -> Pose:
@@ -290,14 +291,14 @@ def _stand_up(t: float, p: dict) -> Pose:
     """
     l1, l2, hip_h = p["thigh_length"], p["shin_length"], p["hip_height"]
     s = smoothstep((t - p["start"]) / max(1e-6, p["end"] - p["start"]))
-    seat_hip = p["seat_height"] + 0.04  # hip joint a little above the seat (the pelvis block's half height)
+    seat_hip = p["seat_height"] + 0.05  # the hip joint sits above the seat by the thighs' half thickness
     # seated: thighs horizontal, knees above the feet: feet at l1 forward of the hips
     foot_y = -l1
     hip_y = foot_y * s  # hips move from above the seat to above the feet
     hip_z = seat_hip + (hip_h - seat_hip) * s
     lean = math.radians(35.0) * math.sin(math.pi * s) + math.radians(8.0) * (1.0 - s)
     # the foot's forward (-y) offset from the hip, and its height below the hip
-    hip, knee = _two_link_ik(hip_y - foot_y, -hip_z, l1, l2)
+    hip, knee = _two_link_ik(hip_y - foot_y, -(hip_z - p["ankle_height"]), l1, l2)
     arms = math.radians(50.0) * math.sin(math.pi * s)
     bones = {
         # a positive angle about +x swings a downward bone backward (+y) and tilts an upward one forward
@@ -305,11 +306,14 @@ def _stand_up(t: float, p: dict) -> Pose:
         "thigh.R": (-hip, 0.0, 0.0),
         "shin.L": (knee, 0.0, 0.0),
         "shin.R": (knee, 0.0, 0.0),
+        "foot.L": (hip - knee, 0.0, 0.0),  # undo the leg's pitch: soles stay flat on the floor
+        "foot.R": (hip - knee, 0.0, 0.0),
         "spine": (lean, 0.0, 0.0),
-        "upper_arm.L": (-(arms + lean), 0.0, 0.0),
-        "upper_arm.R": (-(arms + lean), 0.0, 0.0),
-        "forearm.L": (-0.3 * arms, 0.0, 0.0),
-        "forearm.R": (-0.3 * arms, 0.0, 0.0),
+        # seated, the forearms rest forward over the thighs; rising, the arms swing forward for balance
+        "upper_arm.L": (-(arms + lean + 0.6 * (1.0 - s)), 0.0, 0.0),
+        "upper_arm.R": (-(arms + lean + 0.6 * (1.0 - s)), 0.0, 0.0),
+        "forearm.L": (-(0.3 * arms + 0.7 * (1.0 - s)), 0.0, 0.0),
+        "forearm.R": (-(0.3 * arms + 0.7 * (1.0 - s)), 0.0, 0.0),
     }
     return Pose(root=(0.0, hip_y, hip_z - hip_h), bones=bones)
 
@@ -320,7 +324,8 @@ def _stand_up(t: float, p: dict) -> Pose:
     points=Param("path", REQUIRED, "polyline [[x, y, z], ...] the animal runs along (offsets)"),
     strides=Param("float", 6.0, "gait cycles over t in [0, 1]"),
     stride_deg=Param("float", 35.0, "peak leg swing"),
-    bob=Param("float", 0.04, "body bob amplitude, in body lengths"),
+    bob=Param("float", 0.02, "body bob amplitude, in template units"),
+    leg_length=Param("float", 0.2, "hip to paw contact, in template units (lowers the body as legs swing)"),
     tail_deg=Param("float", 25.0, "tail wag amplitude"),
 )
 def _run_cycle(t: float, p: dict) -> Pose:
@@ -339,9 +344,9 @@ def _run_cycle(t: float, p: dict) -> Pose:
         "tail.2": (0.0, 0.0, 0.8 * wag),
         "head": (0.0, 0.12 * math.sin(ph), 0.0),
     }
-    # the lowest leg point rises by leg * (1 - cos a) when swung; bob keeps contact only mid-stride
-    bob = p["bob"] * abs(math.sin(ph))
-    return Pose(location=pos, rotation=(0.0, 0.0, _heading(tan)), root=(0.0, 0.0, bob), bones=bones)
+    # a swung leg's paw rises by about leg * (1 - cos a): lower the body to keep the paws on the floor
+    z = p["bob"] * abs(math.sin(ph)) - p["leg_length"] * (1.0 - math.cos(a))
+    return Pose(location=pos, rotation=(0.0, 0.0, _heading(tan)), root=(0.0, 0.0, z), bones=bones)
 
 
 @motion(

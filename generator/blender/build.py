@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import bmesh
-import bpy
+import bpy  # first: bmesh and mathutils become importable once bpy is loaded
+import bmesh  # noqa: E402
 from mathutils import Euler, Vector
 
 from generator import motion as motion_mod

@@ -81,6 +81,7 @@ _H_BONES_L = [
     BoneDef("forearm.L", (0.15, 0.0, 0.62), (0.15, 0.0, 0.42), "upper_arm.L"),
     BoneDef("thigh.L", (0.07, 0.0, 0.52), (0.07, 0.0, 0.28), "hips"),
     BoneDef("shin.L", (0.07, 0.0, 0.28), (0.07, 0.0, 0.04), "thigh.L"),
+    BoneDef("foot.L", (0.07, 0.0, 0.04), (0.07, -0.11, 0.04), "shin.L"),
 ]
 _H_PARTS_L = [
     PartDef("shoulder.L", "upper_arm.L", "sphere", (0.15, 0.0, 0.81), (0.08, 0.08, 0.08), "shirt"),
@@ -91,7 +92,7 @@ _H_PARTS_L = [
     PartDef("thigh.L", "thigh.L", "cylinder", (0.07, 0.0, 0.40), (0.095, 0.095, 0.24), "pants"),
     PartDef("knee.L", "shin.L", "sphere", (0.07, 0.0, 0.28), (0.09, 0.09, 0.09), "pants"),
     PartDef("shin.L", "shin.L", "cylinder", (0.07, 0.0, 0.165), (0.078, 0.078, 0.23), "pants"),
-    PartDef("foot.L", "shin.L", "box", (0.07, -0.03, 0.025), (0.085, 0.17, 0.05), "shoes"),
+    PartDef("foot.L", "foot.L", "box", (0.07, -0.03, 0.025), (0.085, 0.17, 0.05), "shoes"),
 ]
 HUMANOID = RigTemplate(
     "humanoid",
