@@ -109,20 +109,18 @@ def test_cameras(n: int, radius: float, target=(0.0, 0.0, 0.0), elevation_deg=(1
     avoid_dirs = camera_directions(list(avoid), target) if avoid is not None else np.zeros((0, 3))
     cos_min = math.cos(math.radians(min_separation_deg))
     chosen: list[np.ndarray] = []
-    a0 = rng.random()
-    for _ in range(64):  # rounds of n stratified candidates; the first usually suffices
+    taken = avoid_dirs  # directions no new camera may come close to
+    for _ in range(64):  # rounds of n candidates, stratified in azimuth; the first usually suffices
         k = np.arange(n)
-        az = 2.0 * math.pi * np.mod(a0 + (k + rng.random(n) * 0.5) / max(n, 1), 1.0)
-        h = (np.mod(k * _GOLDEN_FRACTION + rng.random(), 1.0) + rng.random(n) * 0.25) % 1.0
+        az = 2.0 * math.pi * np.mod(rng.random() + (k + 0.5 * rng.random(n)) / n, 1.0)
+        h = np.mod(k * _GOLDEN_FRACTION + rng.random() + 0.25 * rng.random(n), 1.0)
         for pose in _poses(az, h, radius, target, lo, hi):
-            d = camera_directions([pose], target)[0]
-            taken = camera_directions(chosen, target) if chosen else np.zeros((0, 3))
-            near = np.concatenate([avoid_dirs, taken]) @ d if len(avoid_dirs) + len(taken) else np.zeros(0)
-            if np.all(near < cos_min):
+            d = camera_directions([pose], target)
+            if np.all(taken @ d[0] < cos_min):
                 chosen.append(pose)
+                taken = np.concatenate([taken, d])
                 if len(chosen) == n:
                     return chosen
-        a0 = rng.random()
     raise ValueError(f"could not place {n} test cameras {min_separation_deg} degrees away from "
                      f"{len(avoid_dirs)} training cameras; lower min_separation_deg or widen the elevation range")
 
