@@ -1,5 +1,6 @@
 """PSNR against analytic values; SSIM against scikit-image's structural_similarity."""
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -155,3 +156,13 @@ def test_ssim_bad_input():
         m = np.zeros((20, 20))
         m[:3] = 1
         ssim(np.zeros((20, 20, 3)), np.zeros((20, 20, 3)), mask=m)
+
+
+def test_ssim_device_paths_agree():
+    """The conv2d path (used off the CPU) and the scipy path (CPU) compute the same blur."""
+    ssim_module = sys.modules["benchmark.metrics.ssim"]
+    x = torch.from_numpy(np.random.default_rng(8).random((4, 30, 33)))
+    k = ssim_module._kernel(torch.float64, x.device)
+    a, b = ssim_module._blur_valid(x, k), ssim_module._blur_valid_conv(x, k)
+    assert a.shape == b.shape == (4, 20, 23)
+    assert float((a - b).abs().max()) < 1e-14

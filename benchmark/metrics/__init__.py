@@ -2,7 +2,9 @@
 
 Importing this package does not import torch (it loads on first use). The submodules are imported here,
 eagerly, so that the names ``lpips``, ``psnr`` and ``ssim`` below are always the functions: a later
-``import benchmark.metrics.lpips`` would otherwise rebind the package attribute to the module.
+``import benchmark.metrics.lpips`` would otherwise rebind the package attribute to the module. (To reach a submodule itself, use
+``from benchmark.metrics.ssim import ...`` or ``sys.modules``; ``import benchmark.metrics.ssim as m`` yields
+the function.)
 """
 from __future__ import annotations
 

@@ -30,29 +30,47 @@ def _kernel(dtype, device):
 
 
 def _blur_valid(x, k):
-    """Separable Gaussian blur of (C, 1, H, W) without padding -> (C, 1, H - 10, W - 10)."""
+    """Separable Gaussian blur of (N, H, W) without padding -> (N, H - 10, W - 10).
+
+    On the CPU scipy's 1-D correlation is used (about 10x faster than torch's float64 conv2d); on other
+    devices, conv2d. Only windows wholly inside the image are kept, so the padding mode never matters.
+    """
+    if x.device.type != "cpu":
+        return _blur_valid_conv(x, k)
+    import torch
+    from scipy.ndimage import correlate1d
+
+    kk = k.numpy()
+    y = correlate1d(x.numpy(), kk, axis=-2, mode="constant")
+    y = correlate1d(y, kk, axis=-1, mode="constant")
+    return torch.from_numpy(y[:, RADIUS:-RADIUS, RADIUS:-RADIUS])
+
+
+def _blur_valid_conv(x, k):
     import torch.nn.functional as F
 
-    x = F.conv2d(x, k.view(1, 1, 1, -1))
-    return F.conv2d(x, k.view(1, 1, -1, 1))
+    y = F.conv2d(x.unsqueeze(1), k.view(1, 1, 1, -1))
+    return F.conv2d(y, k.view(1, 1, -1, 1)).squeeze(1)
 
 
 def _ssim_map_t(p, g):
     """SSIM map of H x W x C tensors over the valid region, as (H - 10) x (W - 10) x C."""
+    import torch
+
     h, w, _ = p.shape
     if h < WIN or w < WIN:
         raise UserError(f"image of {h} x {w} pixels is too small for SSIM; it needs at least {WIN} x {WIN}")
     k = _kernel(p.dtype, p.device)
-    x = p.permute(2, 0, 1).unsqueeze(1)
-    y = g.permute(2, 0, 1).unsqueeze(1)
-    ux, uy = _blur_valid(x, k), _blur_valid(y, k)
-    vx = _blur_valid(x * x, k) - ux * ux
-    vy = _blur_valid(y * y, k) - uy * uy
-    vxy = _blur_valid(x * y, k) - ux * uy
+    x = p.permute(2, 0, 1)
+    y = g.permute(2, 0, 1)
+    ux, uy, uxx, uyy, uxy = _blur_valid(torch.stack([x, y, x * x, y * y, x * y]).flatten(0, 1), k).unflatten(0, (5, -1))
+    vx = uxx - ux * ux
+    vy = uyy - uy * uy
+    vxy = uxy - ux * uy
     c1 = (K1 * DATA_RANGE) ** 2
     c2 = (K2 * DATA_RANGE) ** 2
     s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
-    return s.squeeze(1).permute(1, 2, 0)
+    return s.permute(1, 2, 0)
 
 
 def ssim_map(pred, gt):
