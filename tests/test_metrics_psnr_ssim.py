@@ -80,6 +80,8 @@ def test_psnr_torch_matches_numpy():
         (np.zeros((4, 4, 3)), np.zeros((4, 4, 3)), np.ones((3, 4)), "does not fit"),
         (np.zeros((4, 4, 3)), np.zeros((4, 4, 3)), -np.ones((4, 4)), "negative"),
         (np.zeros((2, 4, 4, 3)), np.zeros((2, 4, 4, 3)), None, "H x W x C"),
+        (np.full((4, 4, 3), np.nan), np.zeros((4, 4, 3)), None, "prediction image contains NaN"),
+        (np.zeros((4, 4, 3)), np.full((4, 4, 3), np.inf), None, "ground truth image contains NaN"),
     ],
 )
 def test_psnr_bad_input(pred, gt, mask, words):

@@ -31,11 +31,17 @@ def as_image(x: Any, name: str, dtype=None):
 
 
 def check_pair(pred, gt, dtype=None):
-    """Convert a prediction/ground-truth pair, requiring equal shapes; gt moves to pred's device."""
+    """Convert a prediction/ground-truth pair, requiring equal shapes and finite values; gt moves to pred's device."""
+    import torch
+
     p = as_image(pred, "prediction", dtype)
     g = as_image(gt, "ground truth", dtype).to(p.device)
     if p.shape != g.shape:
         raise UserError(f"image sizes differ: prediction {tuple(p.shape)} vs ground truth {tuple(g.shape)}")
+    # A NaN would silently poison every mean downstream; name it instead.
+    for t, name in ((p, "prediction"), (g, "ground truth")):
+        if not bool(torch.isfinite(t).all()):
+            raise UserError(f"{name} image contains NaN or infinite values")
     return p, g
 
 
