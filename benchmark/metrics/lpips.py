@@ -14,7 +14,7 @@ import functools
 
 from lumibench.errors import UserError
 
-from .lpips_weights import TAP_CHANNELS, check_net, load_state_dict
+from .lpips_weights import CONV_SHAPES, TAP_CHANNELS, check_net, load_state_dict
 
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
@@ -60,15 +60,12 @@ def _module_class():
             self.net = check_net(net)
             self.input_range = _check_range(input_range)
             state = load_state_dict(self.net)
-            n_convs = sum(1 for k in state if k.startswith("convs.") and k.endswith(".weight"))
-            self.convs = nn.ModuleList(
-                nn.Conv2d(*state[f"convs.{i}.weight"].shape[1::-1], state[f"convs.{i}.weight"].shape[-1])
-                for i in range(n_convs)
-            )
+            self.convs = nn.ModuleList(nn.Conv2d(cin, cout, kh) for cout, cin, kh, _ in CONV_SHAPES[self.net])
             self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in TAP_CHANNELS[self.net])
             self.load_state_dict(state)
-            self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
-            self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
+            # constants, not weights: kept out of state_dict so that it stays the converted checkpoint
+            self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1), persistent=False)
+            self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1), persistent=False)
             self.requires_grad_(False)
             self.eval()
 
