@@ -58,6 +58,8 @@ def save(out_dir: Path, kind: str, stem: str, image: np.ndarray, light: str | No
         folder = out_dir / "relight" / str(light)
     elif kind == "p_map":
         folder = out_dir / "p_map" / "train"
+    elif kind == "envmap":  # stem is the light's name
+        folder = out_dir / "envmap"
     else:
         folder = out_dir / kind
     path = folder / f"{stem}.{fmt}"
