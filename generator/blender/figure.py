@@ -162,7 +162,7 @@ CRANE = RigTemplate(
         PartDef("counterweight", "boom", "box", (-0.18, 0.0, -0.05), (0.16, 0.18, 0.16), "weight"),
         PartDef("cable", "cable", "cylinder", (0.75, 0.0, -0.21), (0.016, 0.016, 0.38), "cable"),
         PartDef("hook", "cable", "torus", (0.75, 0.0, -0.44), (0.12, 0.12, 0.03), "cable", (90.0, 0.0, 0.0)),
-        PartDef("cargo", "cable", "box", (0.75, 0.0, -0.6), (0.22, 0.22, 0.2), "cargo"),
+        PartDef("cargo", "cable", "box", (0.75, 0.0, -0.6), (0.26, 0.26, 0.22), "cargo"),
     ),
 )
 
