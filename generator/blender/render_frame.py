@@ -1,0 +1,125 @@
+"""The per-frame Blender job, run inside a worker process that builds the scene once.
+
+For each frame: pose the scene at its time, place the camera, render the ground-truth pass once (a
+multilayer EXR: AOVs, world-space Normal, alpha; few samples, no bounces, no denoiser), turn it into
+the GT files, then render the lit RGBA PNG under each light, swapping only the world's env map. The
+frame's record is written last, so a frame interrupted anywhere is simply rendered again.
+"""
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+from typing import Any
+
+import bpy
+
+from generator import postprocess
+from generator.jobs import FrameJob, RenderSettings
+from lumibench import layout
+from lumibench.io import atomic_write_json
+
+from . import camera as bcamera
+from . import cycles as bcycles
+from . import world as bworld
+from .build import build_scene, reset_blender
+
+# Importance map for the world: the 32 x 16 maps need little resolution. "MANUAL" matters for speed:
+# Cycles' automatic mode rebuilds a large map on every env swap (about 0.7 s each, measured).
+WORLD_SAMPLE_MAP = 128
+class FrameRenderer:
+    """One built scene, ready to render frames of any variant (they differ only in time and camera)."""
+
+    def __init__(self, spec, settings: RenderSettings, hdr_paths: dict[str, str], *, threads: int = 0,
+                 persistent_data: bool = True):
+        self.spec = spec
+        self.settings = settings
+        self.hdr_paths = {n: str(Path(p).resolve()) for n, p in hdr_paths.items()}
+        t0 = time.perf_counter()
+        self.scene = reset_blender()
+        self.built = build_scene(self.scene, spec)
+        bcycles.configure(self.scene, resolution=settings.resolution, spp=settings.spp, seed=settings.seed,
+                          threads=threads, persistent_data=persistent_data)
+        _no_metadata(self.scene)
+        self.current_light: str | None = None
+        self._set_light(settings.light_names[0])
+        self.build_seconds = time.perf_counter() - t0
+        self.blender_version = bpy.app.version_string
+
+    def _set_light(self, name: str) -> None:
+        if name == self.current_light:
+            return
+        world = bworld.set_environment(self.scene, self.hdr_paths[name], 1.0)
+        world.cycles.sampling_method = "MANUAL"
+        world.cycles.sample_map_resolution = WORLD_SAMPLE_MAP
+        self.current_light = name
+
+    def _pose(self, job: FrameJob) -> None:
+        self.built.set_time(job.time)
+        bcamera.set_camera(self.scene, job.c2w, self.settings.camera_angle_x)
+
+    def render_gt(self, job: FrameJob, exr_path: Path) -> float:
+        """The ground-truth pass to ``exr_path``; returns seconds."""
+        sc, c = self.scene, self.scene.cycles
+        t0 = time.perf_counter()
+        saved = (c.samples, c.use_denoising, c.max_bounces)
+        c.samples, c.use_denoising, c.max_bounces = self.settings.gt_spp, False, 0
+        vl = sc.view_layers[0]
+        vl.use_pass_normal = True
+        ims = sc.render.image_settings
+        ims.media_type = "MULTI_LAYER_IMAGE"
+        ims.color_depth = "32"
+        ims.exr_codec = "ZIP"
+        try:
+            bcycles.render_still(sc, exr_path)
+        finally:
+            c.samples, c.use_denoising, c.max_bounces = saved
+            bcycles.set_png_output(sc)
+        return time.perf_counter() - t0
+
+    def render_lit(self, job: FrameJob, light: str) -> float:
+        """The lit RGBA PNG under ``light``; Blender's render-time text chunks are dropped on the way."""
+        t0 = time.perf_counter()
+        self._set_light(light)
+        staged = job.record_path().with_name(f"{layout.frame_stem(job.index)}.{light}.png")
+        bcycles.render_still(self.scene, staged)
+        try:
+            postprocess.strip_png_text(staged, layout.lit_image_path(job.scene_dir, light, job.file_path))
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                staged.unlink()
+        return time.perf_counter() - t0
+
+    def render(self, job: FrameJob, spec_hash: str) -> dict[str, Any]:
+        """All files of one frame, then its record; returns the record."""
+        t_start = time.perf_counter()
+        self._pose(job)
+        rec_path = job.record_path()
+        exr = rec_path.with_name(f"{rec_path.stem}.gt.exr")
+        gt_s = self.render_gt(job, exr)
+        t0 = time.perf_counter()
+        try:
+            postprocess.exr_to_ground_truth(exr, job.scene_dir, job.file_path)
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                exr.unlink()
+        post_s = time.perf_counter() - t0
+        lit_s = {light: round(self.render_lit(job, light), 4) for light in self.settings.light_names}
+        record = {
+            "key": job.key(spec_hash, self.settings),
+            "file_path": job.file_path,
+            "blender_version": self.blender_version,
+            "seconds": {"gt": round(gt_s, 4), "post": round(post_s, 4), "lit": lit_s,
+                        "total": round(time.perf_counter() - t_start, 4)},
+        }
+        atomic_write_json(rec_path, record)
+        return record
+
+
+def _no_metadata(bpy_scene) -> None:
+    """No date, render time, file name or host in the PNG/EXR metadata: identical inputs, identical bytes."""
+    r = bpy_scene.render
+    for name in dir(r):
+        if name.startswith("use_stamp") and isinstance(getattr(r, name), bool):
+            with contextlib.suppress(AttributeError, TypeError):
+                setattr(r, name, False)
