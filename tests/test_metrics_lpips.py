@@ -52,6 +52,15 @@ def test_weights_shapes_and_nonnegative_heads(net):
 
 
 @pytest.mark.parametrize("net", NETS)
+def test_model_holds_exactly_the_converted_weights(net):
+    state = lw.load_state_dict(net)
+    model = LPIPSModel(net)
+    ours = model.state_dict()
+    assert sorted(ours) == sorted(state)
+    assert all(torch.equal(ours[k], state[k]) for k in state)
+
+
+@pytest.mark.parametrize("net", NETS)
 def test_weights_info(net):
     info = lpips_weights_info(net)
     assert info["file"] == lw.NETS[net]
