@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from .camera import Camera
+from .composite import composite
 from .segments import Segments
 from .splats import check_splats, splat_frames
 
@@ -81,7 +82,14 @@ def project_splats(means, quats, scales, opacities, camera: Camera):
     return dict(A=A, B=B, C=C, det=det, centre=centre, z=z, normal=facing, m0=m0, m1=m1, m2=m2)
 
 
-def _screen_bounds(proj, opacities, camera: Camera, near: float):
+def _shift_rows(rows, shift):
+    """Rows of footprints translated by ``shift`` pixels: evaluating at (x - sx, y - sy)."""
+    sx, sy = shift[:, :1], shift[:, 1:2]
+    a = rows[:, 0:3] - sx * rows[:, 3:6] - sy * rows[:, 6:9]
+    return torch.cat([a, rows[:, 3:10], rows[:, 10:12] + shift, rows[:, 12:]], 1)
+
+
+def _screen_bounds(proj, opacities, camera: Camera, near: float, shift=None):
     """No-grad pixel bounding boxes (inclusive) of each splat's support; also a validity mask and radii."""
     m0, m1, m2 = proj["m0"], proj["m1"], proj["m2"]
     o = opacities.detach()
@@ -105,6 +113,8 @@ def _screen_bounds(proj, opacities, camera: Camera, near: float):
     xmax = torch.maximum(mx + ex, ctr[:, 0] + rd)
     ymin = torch.minimum(my - ey, ctr[:, 1] - rd)
     ymax = torch.maximum(my + ey, ctr[:, 1] + rd)
+    if shift is not None:
+        xmin, xmax, ymin, ymax = xmin + shift[:, 0], xmax + shift[:, 0], ymin + shift[:, 1], ymax + shift[:, 1]
     big = float(max(camera.width, camera.height)) * 4.0 + 10.0
     xmin = torch.where(bounded, xmin, torch.full_like(xmin, -big)).clamp(-big, big)
     xmax = torch.where(bounded, xmax, torch.full_like(xmax, big)).clamp(-big, big)
@@ -117,11 +127,11 @@ def _screen_bounds(proj, opacities, camera: Camera, near: float):
     y1 = torch.floor(ymax - 0.5 + pad).long().clamp_max(camera.height - 1)
     valid = (proj["z"] >= near) & (o >= ALPHA_MIN) & (x1 >= x0) & (y1 >= y0)
     radii = torch.where(valid, torch.maximum(xmax - xmin, ymax - ymin) * 0.5, torch.zeros_like(xmin))
-    return x0, x1, y0, y1, valid, radii
+    return x0, x1, y0, y1, valid, radii, bounded, k2
 
 
-def _pair_alpha(g, x, y, near: float):
-    """Alpha and hit depth of packed pairs from gathered per-splat rows ``g`` (see _pack_rows)."""
+def _pair_terms(g, x, y):
+    """Shared forward algebra of a packed pair: (c0, c1, inv c2, rho3, dx, dy, rho2, use3)."""
     c0 = g[:, 0] + x * g[:, 3] + y * g[:, 6]
     c1 = g[:, 1] + x * g[:, 4] + y * g[:, 7]
     c2 = g[:, 2] + x * g[:, 5] + y * g[:, 8]
@@ -134,11 +144,59 @@ def _pair_alpha(g, x, y, near: float):
     dx = x - g[:, 10]
     dy = y - g[:, 11]
     rho2 = 2.0 * (dx * dx + dy * dy)
-    use3 = (rho3 <= rho2).detach()
-    rho = torch.where(use3, rho3, rho2)
-    depth = torch.where(use3, g[:, 9] * inv, g[:, 12])
-    alpha = torch.clamp_max(g[:, 13] * torch.exp(-0.5 * rho), ALPHA_MAX)
-    return alpha, depth
+    use3 = rho3 <= rho2
+    return u, v, inv, rho3, dx, dy, rho2, use3
+
+
+class _PairAlpha(torch.autograd.Function):
+    """alpha, hit depth of packed pairs from gathered per-splat rows (see _pack_rows); fused backward
+    (autograd on column slices would allocate a full (P, 14) zero tensor per slice)."""
+
+    @staticmethod
+    def forward(ctx, g, x, y):
+        u, v, inv, rho3, dx, dy, rho2, use3 = _pair_terms(g, x, y)
+        rho = torch.where(use3, rho3, rho2)
+        gauss = torch.exp(-0.5 * rho)
+        raw = g[:, 13] * gauss
+        alpha = torch.clamp_max(raw, ALPHA_MAX)
+        depth = torch.where(use3, g[:, 9] * inv, g[:, 12])
+        ctx.save_for_backward(g, x, y, u, v, inv, dx, dy, use3, gauss, raw < ALPHA_MAX, depth)
+        return alpha, depth
+
+    @staticmethod
+    def backward(ctx, g_alpha, g_depth):
+        g, x, y, u, v, inv, dx, dy, use3, gauss, unclamped, depth = ctx.saved_tensors
+        ga = torch.where(unclamped, g_alpha, torch.zeros_like(g_alpha))
+        g_o = ga * gauss
+        g_rho = g_o * g[:, 13] * -0.5
+        g3 = torch.where(use3, g_rho, torch.zeros_like(g_rho))
+        gd3 = torch.where(use3, g_depth, torch.zeros_like(g_depth))
+        g2 = g_rho - g3
+        gc0 = 2.0 * g3 * u * inv
+        gc1 = 2.0 * g3 * v * inv
+        gc2 = -(2.0 * g3 * (u * u + v * v) + gd3 * depth) * inv
+        gcx = -4.0 * g2 * dx
+        gcy = -4.0 * g2 * dy
+        gc = torch.stack([gc0, gc1, gc2], 1)
+        out = torch.cat([gc, x[:, None] * gc, y[:, None] * gc, (gd3 * inv)[:, None], gcx[:, None],
+                         gcy[:, None], (g_depth - gd3)[:, None], g_o[:, None]], 1)
+        gx = gy = None
+        if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
+            gx = (gc * g[:, 3:6]).sum(1) - gcx
+            gy = (gc * g[:, 6:9]).sum(1) - gcy
+        return out, gx, gy
+
+
+def _pair_alpha(g, x, y):
+    """Alpha and hit depth of packed pairs; differentiable w.r.t. the rows g and the pixel position."""
+    if torch.is_grad_enabled() and (g.requires_grad or x.requires_grad or y.requires_grad):
+        return _PairAlpha.apply(g, x, y)
+    return _PairAlpha.forward(_NoCtx(), g, x, y)
+
+
+class _NoCtx:
+    def save_for_backward(self, *args):
+        pass
 
 
 def _pack_rows(proj, opacities):
@@ -147,21 +205,127 @@ def _pack_rows(proj, opacities):
                       proj["z"][:, None], opacities[:, None]], 1)
 
 
-def _candidates(x0, x1, y0, y1, valid, z, width: int):
-    """All (splat, pixel) pairs inside the boxes, splat-major in front-to-back order."""
-    dev = z.device
+def _box_classes(bw: torch.Tensor, bh: torch.Tensor):
+    """Group splats by box size rounded up to powers of two: yields (members, Sh, Sw)."""
+    lw = torch.ceil(torch.log2(bw.double())).long()
+    lh = torch.ceil(torch.log2(bh.double())).long()
+    key = lh * 64 + lw
+    uniq = torch.unique(key).tolist()
+    for k in uniq:
+        members = torch.nonzero(key == k).squeeze(1)
+        yield members, 1 << (k // 64), 1 << (k % 64)
+
+
+def _candidate_pairs(rows, x0, x1, y0, y1, valid, width: int, height: int, near: float,
+                     chunk_elems: int = 1 << 22):
+    """No-grad: every (splat, pixel) in the splat's box with alpha >= 1/255 and hit depth >= near.
+
+    Boxes are evaluated densely per power-of-two size class with broadcasting (no per-pair gathers);
+    work is chunked so that temporaries stay below ``chunk_elems`` elements.
+    Returns (splat index, pixel index, alpha), unordered.
+    """
+    dev, dt = rows.device, rows.dtype
     idx = torch.nonzero(valid).squeeze(1)
-    idx = idx[torch.argsort(z[idx], stable=True)]
+    out_s, out_p, out_a = [], [], []
+    if idx.numel() == 0:
+        e = torch.zeros(0, dtype=torch.long, device=dev)
+        return e, e, torch.zeros(0, dtype=dt, device=dev)
     bw = (x1 - x0 + 1)[idx]
-    cnt = bw * (y1 - y0 + 1)[idx]
+    bh = (y1 - y0 + 1)[idx]
+    for members, sh, sw in _box_classes(bw, bh):
+        sel_all = idx[members]
+        step = max(1, chunk_elems // (sh * sw))
+        ar_x = torch.arange(sw, device=dev)
+        ar_y = torch.arange(sh, device=dev)
+        for s0 in range(0, sel_all.numel(), step):
+            sel = sel_all[s0:s0 + step]
+            r = rows[sel]
+            xi = x0[sel, None] + ar_x[None, :]  # (n, sw)
+            yi = y0[sel, None] + ar_y[None, :]  # (n, sh)
+            xf = (xi.to(dt) + 0.5)[:, None, :]
+            yf = (yi.to(dt) + 0.5)[:, :, None]
+            col = lambda j: r[:, j, None, None]  # noqa: E731
+            c0 = col(0) + xf * col(3) + yf * col(6)
+            c1 = col(1) + xf * col(4) + yf * col(7)
+            c2 = col(2) + xf * col(5) + yf * col(8)
+            tiny = 1e-30 if dt == torch.float64 else 1e-20
+            c2 = torch.where(c2.abs() > tiny, c2, torch.full_like(c2, tiny))
+            inv = 1.0 / c2
+            rho3 = (c0 * c0 + c1 * c1) * (inv * inv)
+            dx = xf - col(10)
+            dy = yf - col(11)
+            rho2 = 2.0 * (dx * dx + dy * dy)
+            use3 = rho3 <= rho2
+            rho = torch.where(use3, rho3, rho2)
+            alpha = torch.clamp_max(col(13) * torch.exp(-0.5 * rho), ALPHA_MAX)
+            depth = torch.where(use3, col(9) * inv, col(12))
+            inside = ((xi <= x1[sel, None]) & (xi < width))[:, None, :] & ((yi <= y1[sel, None]) & (yi < height))[:, :, None]
+            ok = (alpha >= ALPHA_MIN) & (depth >= near) & inside
+            i, jy, jx = torch.nonzero(ok, as_tuple=True)
+            out_s.append(sel[i])
+            out_p.append(yi[i, jy] * width + xi[i, jx])
+            out_a.append(alpha[i, jy, jx])
+    return torch.cat(out_s), torch.cat(out_p), torch.cat(out_a)
+
+
+def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near: float, margin: float = 0.01):
+    """No-grad: (splat, pixel) pairs with alpha >= 1/255 and hit depth >= near, unordered.
+
+    Per splat and pixel row, the x-interval of the support is solved in closed form: the ellipse
+    c0^2 + c1^2 <= k^2 c2^2 with c = (A + y C) + x B is a quadratic in x, hulled with the fallback disc.
+    Only pixels inside these spans (a few percent more than the final pairs) are gathered and tested.
+    """
+    dev, dt = rows.device, rows.dtype
+    idx = torch.nonzero(valid).squeeze(1)
+    h = (y1 - y0 + 1)[idx]
+    n_rows = int(h.sum()) if idx.numel() else 0
+    if n_rows == 0:
+        e = torch.zeros(0, dtype=torch.long, device=dev)
+        return e, e, torch.zeros(0, dtype=dt, device=dev)
+    r_local = torch.repeat_interleave(torch.arange(idx.numel(), device=dev), h, output_size=n_rows)
+    first = torch.cumsum(h, 0) - h
+    r_sid = idx.index_select(0, r_local)
+    r_y = y0.index_select(0, r_sid) + torch.arange(n_rows, device=dev) - first.index_select(0, r_local)
+    g = rows.index_select(0, r_sid)
+    kk = k2.index_select(0, r_sid)
+    yc = r_y.to(dt) + 0.5
+    a0, a1, a2 = g[:, 0] + yc * g[:, 6], g[:, 1] + yc * g[:, 7], g[:, 2] + yc * g[:, 8]
+    b0, b1, b2 = g[:, 3], g[:, 4], g[:, 5]
+    qa = b0 * b0 + b1 * b1 - kk * b2 * b2
+    qb = a0 * b0 + a1 * b1 - kk * a2 * b2
+    qc = a0 * a0 + a1 * a1 - kk * a2 * a2
+    disc = qb * qb - qa * qc
+    ell = (qa > 0) & (disc >= 0)
+    sq = torch.sqrt(disc.clamp_min(0.0))
+    qa_s = torch.where(qa > 0, qa, torch.ones_like(qa))
+    inf = torch.full_like(qa, float("inf"))
+    lo = torch.where(ell, (-qb - sq) / qa_s, inf)
+    hi = torch.where(ell, (-qb + sq) / qa_s, -inf)
+    dy = yc - g[:, 11]
+    dd = 0.5 * kk - dy * dy
+    disk = dd >= 0
+    sd = torch.sqrt(dd.clamp_min(0.0))
+    lo = torch.where(disk, torch.minimum(lo, g[:, 10] - sd), lo)
+    hi = torch.where(disk, torch.maximum(hi, g[:, 10] + sd), hi)
+    # unbounded footprints (support crossing the camera plane) and degenerate quadratics: whole box row
+    full = ~bounded.index_select(0, r_sid) | (qa <= 0)
+    bx0, bx1 = x0.index_select(0, r_sid), x1.index_select(0, r_sid)
+    lim = float(width) + 2.0
+    j0 = torch.ceil((lo - 0.5 - margin).clamp(-lim, lim)).long()
+    j1 = torch.floor((hi - 0.5 + margin).clamp(-lim, lim)).long()
+    j0 = torch.where(full, bx0, torch.maximum(j0, bx0))
+    j1 = torch.where(full, bx1, torch.minimum(j1, bx1))
+    cnt = (j1 - j0 + 1).clamp_min(0)
     total = int(cnt.sum())
-    sid_local = torch.repeat_interleave(torch.arange(idx.numel(), device=dev), cnt, output_size=total)
-    first = torch.cumsum(cnt, 0) - cnt
-    off = torch.arange(total, device=dev) - first[sid_local]
-    bw_p = bw[sid_local]
-    ys = y0[idx][sid_local] + torch.div(off, bw_p, rounding_mode="floor")
-    xs = x0[idx][sid_local] + off - torch.div(off, bw_p, rounding_mode="floor") * bw_p
-    return idx[sid_local], ys * width + xs
+    row_of = torch.repeat_interleave(torch.arange(n_rows, device=dev), cnt, output_size=total)
+    start = torch.cumsum(cnt, 0) - cnt
+    xs = j0.index_select(0, row_of) + torch.arange(total, device=dev) - start.index_select(0, row_of)
+    ys = r_y.index_select(0, row_of)
+    sid = r_sid.index_select(0, row_of)
+    alpha, depth = _pair_alpha(rows.index_select(0, sid), xs.to(dt) + 0.5, ys.to(dt) + 0.5)
+    keep = (alpha >= ALPHA_MIN) & (depth >= near)
+    keep_idx = torch.nonzero(keep).squeeze(1)
+    return sid.index_select(0, keep_idx), (ys * width + xs).index_select(0, keep_idx), alpha.index_select(0, keep_idx)
 
 
 def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -183,18 +347,15 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     # ---- no-grad: bounds, candidates, exact alpha test, sort by pixel, stop at T < 1e-4 ----
     with torch.no_grad():
         detached = {k: v.detach() for k, v in proj.items()}
-        x0, x1, y0, y1, valid, radii = _screen_bounds(detached, opacities, cam, near)
-        sid, pix = _candidates(x0, x1, y0, y1, valid, detached["z"], W)
+        shift = None if screen_offsets is None else screen_offsets.detach()
+        x0, x1, y0, y1, valid, radii, bounded, k2 = _screen_bounds(detached, opacities, cam, near, shift)
         rows = _pack_rows(detached, opacities.detach())
-        px = (pix % W).to(dt) + 0.5
-        py = torch.div(pix, W, rounding_mode="floor").to(dt) + 0.5
-        if screen_offsets is not None:
-            so = screen_offsets.detach()
-            px, py = px - so[sid, 0], py - so[sid, 1]
-        alpha, depth = _pair_alpha(rows[sid], px, py, near)
-        keep = (alpha >= ALPHA_MIN) & (depth >= near)
-        sid, pix, alpha = sid[keep], pix[keep], alpha[keep]
-        order = torch.argsort(pix, stable=True)
+        if shift is not None:
+            rows = _shift_rows(rows, shift)
+        sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near)
+        rank = torch.empty(n, dtype=torch.long, device=dev)
+        rank[torch.argsort(detached["z"], stable=True)] = torch.arange(n, device=dev)
+        order = torch.argsort(pix * n + rank[sid])
         sid, pix, alpha = sid[order], pix[order], alpha[order]
         segs = Segments(pix, H * W)
         log_after = segs.exclusive_cumsum(torch.log1p(-alpha).double()) + torch.log1p(-alpha).double()
@@ -206,30 +367,22 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
 
     # ---- with gradients, survivors only ----
     rows = _pack_rows(proj, opacities)
-    g = rows[sid]
+    if screen_offsets is not None:
+        rows = _shift_rows(rows, screen_offsets)
+    g = rows.index_select(0, sid)
     px = (pix % W).to(dt) + 0.5
     py = torch.div(pix, W, rounding_mode="floor").to(dt) + 0.5
-    if screen_offsets is not None:
-        px = px - screen_offsets[sid, 0]
-        py = py - screen_offsets[sid, 1]
-    alpha, depth = _pair_alpha(g, px, py, near)
-    la = torch.log1p(-alpha)
-    trans = torch.exp(segs.exclusive_cumsum(la))
-    w = alpha * trans
-    a_ndc = distortion_far / (distortion_far - distortion_near)
-    m = a_ndc * (1.0 - distortion_near / depth)
-    attrs = torch.cat([features, proj["normal"]], 1)[sid]
+    alpha, depth = _pair_alpha(g, px, py)
     C = features.shape[1]
-    wm = w * m
-    prefix = segs.exclusive_cumsum(torch.stack([w, wm, wm * m], 1))
-    dist_pair = w * (m * m * prefix[:, 0] + prefix[:, 2] - 2.0 * m * prefix[:, 1])
-    acc = segs.sum(torch.cat([w[:, None] * attrs, (w * depth)[:, None], dist_pair[:, None], la[:, None]], 1))
-    t_final = torch.exp(acc[:, C + 5])
+    attrs = torch.cat([features, proj["normal"]], 1).index_select(0, sid)
+    m_scale = distortion_far / (distortion_far - distortion_near)
+    acc, dsum, dist, log_t, trans = composite(alpha, depth, attrs, segs, m_scale, distortion_near)
+    t_final = torch.exp(log_t)
     alpha_img = 1.0 - t_final
     feat = acc[:, :C]
     if background is not None:
         feat = feat + t_final[:, None] * background.to(dev, dt)[None, :]
-    depth_exp = acc[:, C + 3] / alpha_img.clamp_min(1e-10)
+    depth_exp = dsum / alpha_img.clamp_min(1e-10)
     with torch.no_grad():
         cand = torch.where(trans > 0.5, torch.arange(sid.numel(), device=dev), torch.full_like(sid, -1))
         last = torch.full((H * W,), -1, dtype=torch.long, device=dev).scatter_reduce(0, pix, cand, "amax")
@@ -244,7 +397,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     surf = out_depth_exp * (1.0 - depth_ratio) + out_med * depth_ratio if depth_ratio else out_depth_exp
     return RasterOutput(
         features=feat.reshape(H, W, C), alpha=alpha_img.reshape(H, W), normal=acc[:, C:C + 3].reshape(H, W, 3),
-        depth_expected=out_depth_exp, depth_median=out_med, distortion=acc[:, C + 4].reshape(H, W),
+        depth_expected=out_depth_exp, depth_median=out_med, distortion=dist.reshape(H, W),
         normal_from_depth=normal_from_depth(surf, cam), visible=visible, radii=radii, num_pairs=int(sid.numel()))
 
 
