@@ -176,3 +176,22 @@ def test_cycles_renders_the_aovs_with_exact_values(tmp_path):
     assert (dyn > 0.99).sum() >= 20, "balls should cover pixels of the dynamic mask"
     assert (dyn == 0.0).sum() >= 0.5 * dyn.size, "the plate is static"
     assert dyn.min() >= 0.0 and dyn.max() <= 1.0 + 1e-6
+
+
+@pytest.mark.slow
+def test_scene_in_frame_from_cameras_over_the_spec_hemisphere(built):
+    """Every vertex, static or moving, at any time projects inside the image for cameras spread over the
+    spec's elevation band at the spec's radius (the cameras the dataset uses)."""
+    from generator.cameras import project, train_cameras
+
+    spec = built.spec
+    pts = []
+    for t in np.linspace(0.0, 1.0, 6):
+        built.set_time(float(t))
+        pts.append(_verts(built.dynamic_objects + built.static_objects))
+    pts = np.concatenate(pts)
+    cams = train_cameras(32, spec.camera.radius, spec.camera.target, spec.camera.elevation_deg, seed=spec.seed)
+    for c2w in cams:
+        px, depth = project(pts, c2w, spec.camera.camera_angle_x, 100, 100)
+        assert depth.min() > 0.5
+        assert np.all((px >= 0.0) & (px <= 100.0)), f"{spec.name}: part of the scene leaves the frame ({px.min(0)}, {px.max(0)})"
