@@ -116,7 +116,8 @@ def read_image(path: str | Path) -> np.ndarray:
     except UserError:
         raise
     except Exception as exc:  # any decoder failure means a corrupt or truncated file
-        raise UserError(f"cannot read image {path}: {type(exc).__name__}: {exc}") from None
+        detail = (str(exc).strip().splitlines() or [""])[0]
+        raise UserError(f"cannot read image {path}: {type(exc).__name__}: {detail}") from None
     if arr.ndim == 2:
         arr = arr[..., None]
     if arr.ndim != 3:
