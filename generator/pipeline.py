@@ -73,6 +73,16 @@ def check_writable(data: Path) -> None:
         raise UserError(f"DATA directory {data} is not writable ({exc.strerror or exc}); choose another with --data")
 
 
+def load_spec(scene: str):
+    """A scene by name (configs/scenes/<name>.yaml) or a path to a scene YAML file."""
+    if scene.endswith((".yaml", ".yml")) or "/" in scene:
+        path = Path(scene)
+        if not path.is_file():
+            raise UserError(f"scene file not found: {path}")
+        return spec_mod.load_scene_spec(path.stem, path)
+    return spec_mod.load_scene_spec(scene)
+
+
 def n_frames(scene_spec, profile) -> int:
     return min(profile.frames_for(scene_spec.name), scene_spec.frames_full)
 
@@ -80,7 +90,7 @@ def n_frames(scene_spec, profile) -> int:
 def prepare(scene: str, profile: str, data: Path, lights: list[str] | None = None, *, spec=None,
             frames: int | None = None, test_views: int | None = None) -> SceneRun:
     """Validate the inputs, write env maps and transforms, and plan the frames (no rendering)."""
-    spec = spec if spec is not None else spec_mod.load_scene_spec(scene)
+    spec = spec if spec is not None else load_spec(scene)
     prof = load_profile(profile).dataset
     light_specs = resolve_lights(lights)
     n = frames if frames is not None else n_frames(spec, prof)

@@ -109,29 +109,6 @@ def write_ground_truth(gt: dict[str, np.ndarray], scene_dir: Path, file_path: st
     return written
 
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_PNG_TEXT_CHUNKS = (b"tEXt", b"zTXt", b"iTXt", b"tIME")
-
-
-def strip_png_text(src: str | Path, dst: str | Path) -> None:
-    """Copy a PNG without its text/time chunks, atomically. Cycles stores render times there, which would
-    make two identical renders differ in bytes; the pixel data (IDAT) is copied untouched.
-    """
-    data = Path(src).read_bytes()
-    if not data.startswith(_PNG_SIGNATURE):
-        raise ValueError(f"{src} is not a PNG file")
-    out = [_PNG_SIGNATURE]
-    pos = len(_PNG_SIGNATURE)
-    while pos < len(data):
-        length = int.from_bytes(data[pos:pos + 4], "big")
-        end = pos + 12 + length
-        if data[pos + 4:pos + 8] not in _PNG_TEXT_CHUNKS:
-            out.append(data[pos:end])
-        pos = end
-    with atomic_path(dst) as tmp:
-        Path(tmp).write_bytes(b"".join(out))
-
-
 def exr_to_ground_truth(exr: str | Path, scene_dir: Path, file_path: str) -> dict[str, np.ndarray]:
     gt = ground_truth_arrays(read_exr_layers(exr))
     write_ground_truth(gt, scene_dir, file_path)

@@ -40,7 +40,6 @@ class FrameRenderer:
         self.built = build_scene(self.scene, spec)
         bcycles.configure(self.scene, resolution=settings.resolution, spp=settings.spp, seed=settings.seed,
                           threads=threads, persistent_data=persistent_data)
-        _no_metadata(self.scene)
         self.current_light: str | None = None
         self._set_light(settings.light_names[0])
         self.build_seconds = time.perf_counter() - t0
@@ -78,16 +77,10 @@ class FrameRenderer:
         return time.perf_counter() - t0
 
     def render_lit(self, job: FrameJob, light: str) -> float:
-        """The lit RGBA PNG under ``light``; Blender's render-time text chunks are dropped on the way."""
+        """The lit RGBA PNG under ``light`` (render_still drops Cycles' render-time text chunks)."""
         t0 = time.perf_counter()
         self._set_light(light)
-        staged = job.record_path().with_name(f"{layout.frame_stem(job.index)}.{light}.png")
-        bcycles.render_still(self.scene, staged)
-        try:
-            postprocess.strip_png_text(staged, layout.lit_image_path(job.scene_dir, light, job.file_path))
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                staged.unlink()
+        bcycles.render_still(self.scene, layout.lit_image_path(job.scene_dir, light, job.file_path))
         return time.perf_counter() - t0
 
     def render(self, job: FrameJob, spec_hash: str) -> dict[str, Any]:
@@ -114,12 +107,3 @@ class FrameRenderer:
         }
         atomic_write_json(rec_path, record)
         return record
-
-
-def _no_metadata(bpy_scene) -> None:
-    """No date, render time, file name or host in the PNG/EXR metadata: identical inputs, identical bytes."""
-    r = bpy_scene.render
-    for name in dir(r):
-        if name.startswith("use_stamp") and isinstance(getattr(r, name), bool):
-            with contextlib.suppress(AttributeError, TypeError):
-                setattr(r, name, False)
