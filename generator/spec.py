@@ -24,6 +24,9 @@ SCENES_DIR = Path(__file__).resolve().parent.parent / "configs" / "scenes"
 
 PRIMITIVES = ("box", "sphere", "ico_sphere", "cylinder", "cone", "torus", "rig")
 TEXTURES = ("none", "checker", "noise", "bricks", "stripes")
+TECHNICAL_SCENES = ("calib_sphere",)  # not part of the benchmark's five; rendered for convention tests
+# Bump when generator/motion.py or generator/blender/build.py change what a given spec renders.
+BUILDER_VERSION = 1
 SCENE_BOX = 1.3  # everything must stay inside [-SCENE_BOX, SCENE_BOX]^3 (the method initialises there)
 
 Vec3 = tuple[float, float, float]
@@ -89,8 +92,16 @@ class SceneSpec:
         return dataclasses.asdict(self)
 
     def spec_hash(self) -> str:
-        """sha256 of a canonical JSON of the content (sorted keys, fixed float repr): stable across runs."""
-        text = json.dumps(_canonical(self.to_dict()), sort_keys=True, separators=(",", ":"), allow_nan=False)
+        """sha256 of a canonical JSON of the content (sorted keys, fixed float repr): stable across runs.
+
+        Besides the YAML's content it covers what the YAML refers to: the rig templates it uses and
+        BUILDER_VERSION, so a change of a figure's geometry or of motion semantics invalidates old frames.
+        """
+        content = self.to_dict()
+        rigs = sorted({o.rig for o in self.objects if o.rig})
+        content["_rig_templates"] = {r: dataclasses.asdict(rig_templates()[r]) for r in rigs}
+        content["_builder_version"] = BUILDER_VERSION
+        text = json.dumps(_canonical(content), sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
     def dynamic_object_names(self) -> list[str]:
@@ -134,7 +145,13 @@ def rig_templates() -> dict:
 
 
 def available_scenes() -> list[str]:
+    """Every scene spec in configs/scenes/, sorted (the five benchmark scenes and calib_sphere)."""
     return sorted(p.stem for p in SCENES_DIR.glob("*.yaml"))
+
+
+def benchmark_scenes() -> list[str]:
+    """The dynamic benchmark scenes: all specs except the technical ones (calib_sphere)."""
+    return [s for s in available_scenes() if s not in TECHNICAL_SCENES]
 
 
 def load_scene_spec(name: str, path: str | Path | None = None) -> SceneSpec:

@@ -12,7 +12,7 @@ import pytest
 
 from generator import motion
 from generator.blender.figure import HUMANOID, TEMPLATES
-from generator.spec import SCENES_DIR, available_scenes, load_scene_spec
+from generator.spec import SCENES_DIR, available_scenes, benchmark_scenes, load_scene_spec
 from lumibench.errors import UserError
 
 REAL = ["hook", "jumpingjacks", "mouse", "spheres", "standup"]
@@ -50,6 +50,18 @@ def _load(tmp_path, text):
 def test_scene_list_contains_the_five_scenes_and_calibration():
     assert set(REAL) | {"calib_sphere"} == set(available_scenes())
     assert available_scenes() == sorted(available_scenes())
+    assert benchmark_scenes() == REAL
+
+
+def test_spec_hash_covers_the_rig_template(monkeypatch):
+    from generator.blender import figure
+
+    spec = load_scene_spec("jumpingjacks")
+    before = spec.spec_hash()
+    moved = dataclasses.replace(figure.HUMANOID, parts=figure.HUMANOID.parts[1:])
+    monkeypatch.setitem(figure.TEMPLATES, "humanoid", moved)
+    assert spec.spec_hash() != before
+    assert load_scene_spec("spheres").spec_hash() == load_scene_spec("spheres").spec_hash()
 
 
 @pytest.mark.parametrize("name", REAL)
