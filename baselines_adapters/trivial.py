@@ -15,8 +15,8 @@ import numpy as np
 
 from benchmark.predictions import srgb_decode, srgb_encode
 from benchmark.score import read_gt, read_lit
+from generator.envmap import read_envmap
 from lumibench import layout
-from lumibench.io import read_image
 
 from .base import MethodAdapter, save
 
@@ -95,7 +95,7 @@ class NoisyGT(MethodAdapter):
             save(out_dir, "p_map", frame.stem, np.clip(noisy(mask), 0.0, 1.0), fmt="npz")
         env_path = layout.envmap_path(scene_dir, train_light)
         if env_path.is_file():  # the "estimated" env map: the true one with multiplicative noise
-            env = read_image(env_path)[..., :3]
+            env = read_envmap(env_path)
             save(out_dir, "envmap", train_light, env * np.exp(noisy(np.zeros_like(env))), fmt="npz")
         return {"sigma": self.sigma}
 

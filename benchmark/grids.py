@@ -76,9 +76,10 @@ def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -
     env_row = axes[len(frames)]
     for ax in env_row:
         ax.set_axis_off()
-    true_env = _true_envmap(scene, train)
-    est_env = pred.envmap(train)
-    for ax, env, title in ((env_row[0], true_env, f"true env ({train})"), (env_row[2], est_env, "estimated env")):
+    envs = ((env_row[0], _true_envmap(scene, train), f"true env ({train})"),
+            (env_row[1], pred.envmap(train), f"estimated env ({train})"),
+            (env_row[4], _true_envmap(scene, test), f"true env ({test})"))
+    for ax, env, title in envs:
         if env is None:
             ax.text(0.5, 0.5, "not provided", ha="center", va="center", fontsize=8, color="0.4")
         else:
@@ -91,8 +92,10 @@ def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -
 def _true_envmap(scene: Path, light: str) -> np.ndarray | None:
     hdr = layout.envmap_path(scene, light)
     if hdr.is_file():
+        from generator.envmap import read_envmap
+
         try:
-            return read_image(hdr)[..., :3]
+            return read_envmap(hdr)
         except UserError:
             pass
     preview = Path(scene) / f"{light}.png"

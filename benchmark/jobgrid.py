@@ -92,7 +92,10 @@ def _identity(job: dict[str, Any], test: str, version: str = "unknown") -> dict[
 
 
 def _cause(exc: BaseException) -> str:
-    return str(exc) if isinstance(exc, UserError) else f"{type(exc).__name__}: {exc}"
+    """One line: tables and the report list causes, the full traceback goes to error.log."""
+    text = str(exc) if isinstance(exc, UserError) else f"{type(exc).__name__}: {exc}"
+    lines = [l.strip() for l in text.splitlines() if l.strip()]
+    return lines[0] if lines else type(exc).__name__
 
 
 def record_failure(job: dict[str, Any], cause: str, tb: str | None = None, version: str = "unknown") -> None:

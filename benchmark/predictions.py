@@ -130,6 +130,10 @@ class PredictionFolder:
         for ext in (".hdr", ".exr", ".npz", ".png"):
             path = folder / f"{light}{ext}"
             if path.is_file():
+                if ext == ".hdr":
+                    from generator.envmap import read_envmap  # Radiance RGBE, which imageio cannot read
+
+                    return read_envmap(path)
                 img = _rgb(read_image(path), path)
                 return srgb_decode(img) if ext == ".png" else img
         return None

@@ -31,7 +31,8 @@ def _runs(g: Group) -> str:
 
 
 def _fmt(value: float, digits: int) -> str:
-    return f"{value:.{digits}f}"
+    text = f"{value:.{digits}f}"
+    return text[1:] if text.startswith("-") and float(text) == 0 else text  # no "-0.0"
 
 
 def _cell(g: Group, col: Column) -> tuple[str, str] | None:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmark.predictions import srgb_decode
+from generator.envmap import write_hdr
 from lumibench import layout
 from lumibench.io import atomic_write_json, write_png
 
@@ -66,9 +67,7 @@ def make_fake_scene(root: str | Path, name: str = "fake", lights=LIGHTS, n_train
     for k, light in enumerate(lights):
         env = np.full((16, 32, 3), 0.3, np.float32)
         env[2:5, 4 + 6 * k:8 + 6 * k] = 20.0
-        import imageio.v3 as iio
-
-        iio.imwrite(layout.envmap_path(scene, light), env, extension=".hdr")
+        write_hdr(layout.envmap_path(scene, light), env)
         write_png(scene / f"{light}.png", np.clip(env, 0, 1) ** (1 / 2.2))
     atomic_write_json(scene / "dataset.json", {"spec_hash": f"fake-{seed}-{res}", "profile": "ci", "seed": seed,
                                                 "complete": True})
