@@ -316,16 +316,46 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     j0 = torch.where(full, bx0, torch.maximum(j0, bx0))
     j1 = torch.where(full, bx1, torch.minimum(j1, bx1))
     cnt = (j1 - j0 + 1).clamp_min(0)
-    total = int(cnt.sum())
-    row_of = torch.repeat_interleave(torch.arange(n_rows, device=dev), cnt, output_size=total)
-    start = torch.cumsum(cnt, 0) - cnt
-    xs = j0.index_select(0, row_of) + torch.arange(total, device=dev) - start.index_select(0, row_of)
-    ys = r_y.index_select(0, row_of)
-    sid = r_sid.index_select(0, row_of)
-    alpha, depth = _pair_alpha(rows.index_select(0, sid), xs.to(dt) + 0.5, ys.to(dt) + 0.5)
-    keep = (alpha >= ALPHA_MIN) & (depth >= near)
-    keep_idx = torch.nonzero(keep).squeeze(1)
-    return sid.index_select(0, keep_idx), (ys * width + xs).index_select(0, keep_idx), alpha.index_select(0, keep_idx)
+    # per-pixel exact test, rows grouped by span length (powers of two) and evaluated densely with
+    # broadcasting: no per-pixel gathers of splat parameters
+    # per-pixel exact test, rows grouped by span length (powers of two) and evaluated densely with
+    # broadcasting: one gather of row parameters per group instead of per-pixel gathers
+    rowp = torch.stack([a0, a1, a2, b0, b1, b2, g[:, 10], dy * dy, g[:, 9], g[:, 12], g[:, 13]], 1)
+    lw = torch.ceil(torch.log2(cnt.clamp_min(1).double())).long()
+    lw = torch.where(cnt > 0, lw, torch.full_like(lw, -1))
+    out_r, out_x, out_a = [], [], []
+    tiny = 1e-30 if dt == torch.float64 else 1e-20
+    for lev in torch.unique(lw).tolist():
+        if lev < 0:
+            continue
+        rr = torch.nonzero(lw == lev).squeeze(1)
+        S = 1 << lev
+        ar = torch.arange(S, device=dev)
+        q = rowp.index_select(0, rr)
+        col = [q[:, k:k + 1] for k in range(11)]
+        xi = j0.index_select(0, rr)[:, None] + ar[None, :]
+        x = xi.to(dt) + 0.5
+        c0 = col[0] + x * col[3]
+        c1 = col[1] + x * col[4]
+        c2 = col[2] + x * col[5]
+        c2 = torch.where(c2.abs() > tiny, c2, torch.full_like(c2, tiny))
+        inv = 1.0 / c2
+        rho3 = (c0 * c0 + c1 * c1) * (inv * inv)
+        ddx = x - col[6]
+        rho2 = 2.0 * (ddx * ddx + col[7])
+        use3 = rho3 <= rho2
+        alpha = torch.clamp_max(col[10] * torch.exp(-0.5 * torch.where(use3, rho3, rho2)), ALPHA_MAX)
+        depth = torch.where(use3, col[8] * inv, col[9])
+        ok = (alpha >= ALPHA_MIN) & (depth >= near) & (ar[None, :] < cnt.index_select(0, rr)[:, None])
+        flat = torch.nonzero(ok.reshape(-1)).squeeze(1)
+        out_r.append(rr.index_select(0, torch.div(flat, S, rounding_mode="floor")))
+        out_x.append(xi.reshape(-1).index_select(0, flat))
+        out_a.append(alpha.reshape(-1).index_select(0, flat))
+    if not out_r:
+        e = torch.zeros(0, dtype=torch.long, device=dev)
+        return e, e, torch.zeros(0, dtype=dt, device=dev)
+    r = torch.cat(out_r)
+    return r_sid.index_select(0, r), r_y.index_select(0, r) * width + torch.cat(out_x), torch.cat(out_a)
 
 
 def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -355,12 +385,13 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near)
         rank = torch.empty(n, dtype=torch.long, device=dev)
         rank[torch.argsort(detached["z"], stable=True)] = torch.arange(n, device=dev)
-        order = torch.argsort(pix * n + rank[sid])
-        sid, pix, alpha = sid[order], pix[order], alpha[order]
+        key = pix * n + rank.index_select(0, sid)
+        order = torch.argsort(key.int() if H * W * n < 2 ** 31 else key)
+        sid, pix, alpha = sid.index_select(0, order), pix.index_select(0, order), alpha.index_select(0, order)
         segs = Segments(pix, H * W)
         log_after = segs.exclusive_cumsum(torch.log1p(-alpha).double()) + torch.log1p(-alpha).double()
-        live = log_after >= math.log(T_STOP)
-        sid, pix = sid[live], pix[live]
+        live = torch.nonzero(log_after >= math.log(T_STOP)).squeeze(1)
+        sid, pix = sid.index_select(0, live), pix.index_select(0, live)
         segs = Segments(pix, H * W)
         visible = torch.zeros(n, dtype=torch.bool, device=dev)
         visible[sid] = True

@@ -16,7 +16,7 @@ class Segments:
         self.num = int(num_segments)
         self.counts = torch.bincount(seg, minlength=self.num)
         self.starts = torch.cumsum(self.counts, 0) - self.counts
-        self.start_of = self.starts[seg]  # first index of each element's segment
+        self.start_of = self.starts.index_select(0, seg)  # first index of each element's segment
 
     def exclusive_cumsum(self, x: torch.Tensor) -> torch.Tensor:
         """Per-segment exclusive prefix sum of a 1-D tensor (float64 internally, returned in x's dtype)."""
@@ -24,7 +24,7 @@ class Segments:
             return x.clone()
         x64 = x.double()
         excl = torch.cumsum(x64, 0) - x64
-        return (excl - excl[self.start_of]).to(x.dtype)
+        return (excl - excl.index_select(0, self.start_of)).to(x.dtype)
 
     def sum(self, x: torch.Tensor) -> torch.Tensor:
         """Per-segment sum along dim 0, shape (num_segments, *x.shape[1:])."""

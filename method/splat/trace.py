@@ -1,0 +1,254 @@
+"""Ray tracing through 2D Gaussian splats: transmittance (visibility) and composited features per ray.
+
+Hit: the ray meets the splat's plane at t, p = o + t d, local (u, v) on the scaled axes;
+alpha = min(max_alpha, o exp(-(u^2 + v^2) / 2)); hits with t < t_min or alpha < alpha_min are skipped;
+front to back along the ray, each hit is composited while the transmittance *before* it is >= T_min, so
+the hit that takes it below T_min still counts (an opaque splat must give V ~ 0, not V = 1).
+
+Acceleration (why a uniform grid): a splat's support (the ellipse where alpha can reach alpha_min) is
+registered in every grid cell its bounding box overlaps and whose box its plane crosses; rays march cell
+by cell (3D DDA, all rays vectorised, several cells per Python step), a hit counts only in the cell whose
+t-interval contains it (no duplicates, no global sort), and rays drop out as soon as T < T_min. Unlike
+binning per light direction it needs no shared directions (stage 2 rotates the directions per pixel),
+and unlike a BVH its traversal is a fixed-size vector step that torch runs well on CPU and GPU.
+Everything geometric runs without gradients; the surviving hits are recomputed with gradients
+(opacities, features, and the splat geometry) and composited with segmented scans.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .segments import Segments
+from .splats import check_splats, splat_frames
+
+
+def _splat_local(means, quats, scales):
+    """(N, 3, 4) affine maps world -> (u, v, w): w is the signed distance along the unit normal."""
+    a, b, n = splat_frames(quats, scales)
+    au = a / (a * a).sum(-1, keepdim=True)
+    av = b / (b * b).sum(-1, keepdim=True)
+    lin = torch.stack([au, av, n], 1)  # (N, 3, 3)
+    off = -(lin @ means[:, :, None])  # (N, 3, 1)
+    return torch.cat([lin, off], 2)
+
+
+@dataclass
+class TraceAccel:
+    """Uniform grid over the splats' supports; build once per splat set (and opacity), reuse for any rays."""
+
+    lo: torch.Tensor  # (3,) grid origin
+    cell: torch.Tensor  # (3,) cell size
+    res: tuple[int, int, int]
+    cell_start: torch.Tensor  # (n_cells + 1,) CSR offsets into entries
+    entries: torch.Tensor  # (E,) splat ids sorted by cell
+    params: torch.Tensor  # (E, 13) per-entry copy of the splat's local map (12) and opacity
+    alpha_min: float
+    num_splats: int
+
+    @staticmethod
+    def build(means, quats, scales, opacities, alpha_min: float = 0.01, cell_size: float | None = None,
+              max_cells: int = 1 << 21) -> "TraceAccel":
+        """Register every splat whose opacity can reach ``alpha_min`` in the cells its support overlaps.
+
+        ``cell_size`` defaults to the median support radius (measured best: finer cells multiply the
+        entries, coarser cells the candidates per ray; see BENCHMARKS.md)."""
+        check_splats(means, quats, scales, opacities)
+        dev, dt = means.device, means.dtype
+        with torch.no_grad():
+            means, quats, scales, o = means.detach(), quats.detach(), scales.detach(), opacities.detach()
+            a, b, n = splat_frames(quats, scales)
+            k = torch.sqrt(2.0 * torch.log((o / alpha_min).clamp_min(1.0)))
+            live = torch.nonzero(o >= alpha_min).squeeze(1)
+            half = k[:, None] * torch.sqrt(a * a + b * b)  # AABB half extents of the support ellipse
+            local = _splat_local(means, quats, scales).reshape(-1, 12)
+            params = torch.cat([local, o[:, None]], 1)
+            if live.numel() == 0:
+                z = torch.zeros(1, dtype=torch.long, device=dev)
+                return TraceAccel(torch.zeros(3, dtype=dt, device=dev), torch.ones(3, dtype=dt, device=dev),
+                                  (1, 1, 1), torch.zeros(2, dtype=torch.long, device=dev), z[:0],
+                                  params[:0], alpha_min, means.shape[0])
+            bmin = (means - half)[live].min(0).values
+            bmax = (means + half)[live].max(0).values
+            ext = (bmax - bmin).clamp_min(1e-6)
+            pad = 1e-4 * float(ext.max())
+            bmin, bmax = bmin - pad, bmax + pad
+            ext = bmax - bmin
+            if cell_size is None:
+                radius = (k[live] * torch.maximum(scales[live, 0], scales[live, 1]))
+                cell_size = float(radius.median())
+            h = max(float(cell_size), float(ext.max()) / 1024.0)
+            while math.prod(max(1, math.ceil(float(e) / h)) for e in ext) > max_cells:
+                h *= 1.25
+            res = tuple(max(1, math.ceil(float(e) / h)) for e in ext)
+            cell = ext / torch.tensor(res, dtype=dt, device=dev)
+            res_t = torch.tensor(res, device=dev)
+            c0 = torch.floor(((means - half)[live] - bmin) / cell).long().clamp_min(0)
+            c1 = torch.minimum(torch.floor(((means + half)[live] - bmin) / cell).long(), res_t - 1)
+            span = c1 - c0 + 1
+            cnt = span.prod(1)
+            total = int(cnt.sum())
+            which = torch.repeat_interleave(torch.arange(live.numel(), device=dev), cnt, output_size=total)
+            off = torch.arange(total, device=dev) - (torch.cumsum(cnt, 0) - cnt).index_select(0, which)
+            sp = span.index_select(0, which)
+            iz = off % sp[:, 2]
+            iy = torch.div(off, sp[:, 2], rounding_mode="floor") % sp[:, 1]
+            ix = torch.div(off, sp[:, 2] * sp[:, 1], rounding_mode="floor")
+            cidx = c0.index_select(0, which) + torch.stack([ix, iy, iz], 1)
+            sid = live.index_select(0, which)
+            # keep only cells the splat's plane crosses (conservative slab test with a small margin)
+            centre = bmin + (cidx.to(dt) + 0.5) * cell
+            nn = n.index_select(0, sid)
+            dist = ((centre - means.index_select(0, sid)) * nn).sum(1).abs()
+            reach = 0.5 * (nn.abs() * cell).sum(1) * 1.001 + pad
+            keep = torch.nonzero(dist <= reach).squeeze(1)
+            sid, cidx = sid.index_select(0, keep), cidx.index_select(0, keep)
+            flat = (cidx[:, 0] * res[1] + cidx[:, 1]) * res[2] + cidx[:, 2]
+            order = torch.argsort(flat, stable=True)
+            flat, sid = flat.index_select(0, order), sid.index_select(0, order)
+            n_cells = res[0] * res[1] * res[2]
+            counts = torch.bincount(flat, minlength=n_cells)
+            cell_start = torch.cat([torch.zeros(1, dtype=torch.long, device=dev), torch.cumsum(counts, 0)])
+            return TraceAccel(bmin, cell, res, cell_start, sid, params.index_select(0, sid), alpha_min,
+                              means.shape[0])
+
+
+def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: float, steps_per_round: int):
+    """No-grad traversal: returns the composited hits (ray, splat) in front-to-back order per ray."""
+    dev, dt = origins.device, origins.dtype
+    R = origins.shape[0]
+    res = torch.tensor(accel.res, device=dev)
+    lo, cell = accel.lo, accel.cell
+    hi = lo + cell * res.to(dt)
+    inv = 1.0 / torch.where(dirs.abs() > 1e-30, dirs, torch.full_like(dirs, 1e-30))
+    ta, tb = (lo - origins) * inv, (hi - origins) * inv
+    t_enter = torch.maximum(torch.minimum(ta, tb).max(1).values, t_min)
+    t_exit = torch.maximum(ta, tb).min(1).values
+    active = torch.nonzero(t_enter < t_exit).squeeze(1)
+    o, d, iv = origins.index_select(0, active), dirs.index_select(0, active), inv.index_select(0, active)
+    t_cur, t_end = t_enter.index_select(0, active), t_exit.index_select(0, active)
+    t_lo = t_min.index_select(0, active)
+    p = o + t_cur[:, None] * d
+    ci = torch.minimum(torch.floor((p - lo) / cell).long().clamp_min(0), res - 1)
+    step = torch.where(d > 0, 1, -1)
+    nxt = lo + (ci + (d > 0).long()).to(dt) * cell
+    t_max = torch.where(d.abs() > 1e-30, (nxt - o) * iv, torch.full_like(d, float("inf")))
+    t_delta = (cell * iv).abs()
+    log_t = torch.zeros(active.numel(), dtype=torch.float64, device=dev)
+    ray_id = active
+    log_tmin = math.log(T_min)
+    out_ray, out_splat = [], []
+    mult = torch.tensor([accel.res[1] * accel.res[2], accel.res[2], 1], device=dev)
+    P = accel.params
+    while ray_id.numel():
+        # -- up to K cells per ray: (ray, cell, t_in, t_out) records, ray-major
+        recs_c, recs_in, recs_out, recs_ok = [], [], [], []
+        alive = torch.ones(ray_id.numel(), dtype=torch.bool, device=dev)
+        for _ in range(steps_per_round):
+            t_next = t_max.min(1)
+            t_out = torch.minimum(t_next.values, t_end)
+            recs_c.append((ci * mult).sum(1))
+            recs_in.append(t_cur)
+            recs_out.append(t_out)
+            recs_ok.append(alive.clone())
+            axis = t_next.indices
+            onehot = torch.nn.functional.one_hot(axis, 3).bool()
+            ci = torch.where(onehot, ci + step, ci)
+            t_cur = t_out
+            t_max = torch.where(onehot, t_max + t_delta, t_max)
+            alive = alive & (t_next.values < t_end) & ((ci >= 0) & (ci < res)).all(1)
+        cells = torch.stack(recs_c, 1).reshape(-1)
+        r_in = torch.stack(recs_in, 1).reshape(-1)
+        r_out = torch.stack(recs_out, 1).reshape(-1)
+        ok = torch.stack(recs_ok, 1).reshape(-1)
+        rec = torch.nonzero(ok).squeeze(1)
+        cells = cells.index_select(0, rec).clamp(0, accel.cell_start.numel() - 2)
+        start = accel.cell_start.index_select(0, cells)
+        cnt = accel.cell_start.index_select(0, cells + 1) - start
+        total = int(cnt.sum())
+        rec_of = torch.repeat_interleave(torch.arange(rec.numel(), device=dev), cnt, output_size=total)
+        ent = start.index_select(0, rec_of) + torch.arange(total, device=dev) \
+            - (torch.cumsum(cnt, 0) - cnt).index_select(0, rec_of)
+        ray_local = torch.div(rec.index_select(0, rec_of), steps_per_round, rounding_mode="floor")
+        q = P.index_select(0, ent)
+        oo, dd = o.index_select(0, ray_local), d.index_select(0, ray_local)
+        ow = (q[:, 8:11] * oo).sum(1) + q[:, 11]
+        dw = (q[:, 8:11] * dd).sum(1)
+        dws = torch.where(dw.abs() > 1e-30, dw, torch.full_like(dw, 1e-30))
+        t = -ow / dws
+        pu = (q[:, 0:3] * oo).sum(1) + q[:, 3] + t * (q[:, 0:3] * dd).sum(1)
+        pv = (q[:, 4:7] * oo).sum(1) + q[:, 7] + t * (q[:, 4:7] * dd).sum(1)
+        alpha = torch.clamp_max(q[:, 12] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+        rin, rout = r_in.index_select(0, rec).index_select(0, rec_of), r_out.index_select(0, rec).index_select(0, rec_of)
+        hit = (alpha >= accel.alpha_min) & (t >= rin) & (t < rout) & (t >= t_lo.index_select(0, ray_local)) \
+            & (dw.abs() > 1e-30)
+        hidx = torch.nonzero(hit).squeeze(1)
+        h_rec, h_t = rec_of.index_select(0, hidx), t.index_select(0, hidx)
+        # order: record (ray-major, cells front to back), then t within the cell
+        frac = (h_t - rin.index_select(0, hidx)) / (rout.index_select(0, hidx) - rin.index_select(0, hidx)).clamp_min(1e-30)
+        order = torch.argsort(h_rec.double() + frac.double().clamp(0.0, 0.999999))
+        hidx = hidx.index_select(0, order)
+        h_ray = ray_local.index_select(0, hidx)
+        h_alpha = alpha.index_select(0, hidx)
+        segs = Segments(h_ray, ray_id.numel())
+        la = torch.log1p(-h_alpha).double()
+        before = log_t.index_select(0, h_ray) + segs.exclusive_cumsum(la)
+        inc = torch.nonzero(before >= log_tmin).squeeze(1)
+        out_ray.append(ray_id.index_select(0, h_ray.index_select(0, inc)))
+        out_splat.append(accel.entries.index_select(0, ent.index_select(0, hidx.index_select(0, inc))))
+        log_t = log_t + torch.zeros_like(log_t).index_add(0, h_ray.index_select(0, inc), la.index_select(0, inc))
+        keep = torch.nonzero(alive & (log_t >= log_tmin)).squeeze(1)
+        ray_id, o, d, iv = ray_id.index_select(0, keep), o.index_select(0, keep), d.index_select(0, keep), iv.index_select(0, keep)
+        ci, t_max, t_cur, t_end = ci.index_select(0, keep), t_max.index_select(0, keep), t_cur.index_select(0, keep), t_end.index_select(0, keep)
+        t_delta, step, log_t, t_lo = t_delta.index_select(0, keep), step.index_select(0, keep), log_t.index_select(0, keep), t_lo.index_select(0, keep)
+    if not out_ray:
+        e = torch.zeros(0, dtype=torch.long, device=dev)
+        return e, e
+    ray = torch.cat(out_ray)
+    splat = torch.cat(out_splat)
+    order = torch.argsort(ray, stable=True)  # rounds are in front-to-back order already
+    return ray.index_select(0, order), splat.index_select(0, order)
+
+
+def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+          features: torch.Tensor | None, origins: torch.Tensor, dirs: torch.Tensor,
+          t_min: torch.Tensor | float = 0.0, *, alpha_min: float = 0.01, T_min: float = 0.03,
+          max_alpha: float = 0.99, accel: TraceAccel | None = None, steps_per_round: int = 8):
+    """Trace R rays; returns (transmittance (R,), composited features (R, C) or None).
+
+    ``dirs`` need not be unit length (t is in units of |d|). Pass ``accel`` (TraceAccel.build) to reuse
+    the grid across calls; it must have been built from the same splats and opacities with the same
+    ``alpha_min``. Differentiable w.r.t. opacities, features and the splat geometry.
+    """
+    check_splats(means, quats, scales, opacities, features)
+    if origins.dim() != 2 or origins.shape[1] != 3 or dirs.shape != origins.shape:
+        raise ValueError(f"origins and dirs must both be (R, 3), got {tuple(origins.shape)}, {tuple(dirs.shape)}")
+    R = origins.shape[0]
+    dev, dt = means.device, means.dtype
+    origins, dirs = origins.to(dev, dt), dirs.to(dev, dt)
+    tmin = torch.as_tensor(t_min, dtype=dt, device=dev).detach().expand(R).contiguous()
+    if accel is None:
+        accel = TraceAccel.build(means, quats, scales, opacities, alpha_min=alpha_min)
+    elif accel.num_splats != means.shape[0] or abs(accel.alpha_min - alpha_min) > 0:
+        raise ValueError("accel was built for a different splat set or alpha_min; rebuild it")
+    with torch.no_grad():
+        ray, splat = _march(accel, origins.detach(), dirs.detach(), tmin, T_min, max_alpha, steps_per_round)
+    # differentiable recomputation on the composited hits only
+    local = _splat_local(means, quats, scales).index_select(0, splat)  # (P, 3, 4)
+    oo, dd = origins.index_select(0, ray), dirs.index_select(0, ray)
+    o_loc = (local[:, :, :3] @ oo[:, :, None]).squeeze(2) + local[:, :, 3]
+    d_loc = (local[:, :, :3] @ dd[:, :, None]).squeeze(2)
+    t = -o_loc[:, 2] / d_loc[:, 2]
+    pu = o_loc[:, 0] + t * d_loc[:, 0]
+    pv = o_loc[:, 1] + t * d_loc[:, 1]
+    alpha = torch.clamp_max(opacities.index_select(0, splat) * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+    segs = Segments(ray, R)
+    la = torch.log1p(-alpha)
+    trans_before = torch.exp(segs.exclusive_cumsum(la))
+    transmittance = torch.exp(segs.sum(la))
+    if features is None:
+        return transmittance, None
+    out = segs.sum((alpha * trans_before)[:, None] * features.index_select(0, splat))
+    return transmittance, out
