@@ -77,7 +77,7 @@ def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
 
 
 def job_finished(job: dict[str, Any]) -> bool:
-    return all(is_finished(p) for p in job["results"])
+    return all(is_finished(p, job["protocol"], job["lpips_net"]) for p in job["results"])
 
 
 def job_label(job: dict[str, Any]) -> str:

@@ -128,12 +128,18 @@ def read_result(path: str | Path) -> dict[str, Any]:
     return validate(read_json(path), str(path))
 
 
-def is_finished(path: str | Path) -> bool:
-    """A job is finished when its result file exists, validates and says 'ok' (failed ones are retried)."""
+def is_finished(path: str | Path, protocol: str | None = None, lpips_net: str | None = None) -> bool:
+    """A job is finished when its result file exists, validates and says 'ok' (failed ones are retried).
+
+    With ``protocol`` / ``lpips_net`` given, a result scored otherwise is not finished (it is re-scored).
+    """
     path = Path(path)
     if not path.is_file():
         return False
     try:
-        return read_result(path)["status"] == "ok"
+        res = read_result(path)
     except UserError:
         return False
+    if res["status"] != "ok" or (protocol is not None and res["protocol"] != protocol):
+        return False
+    return lpips_net is None or res["metric_config"].get("lpips_net") == lpips_net

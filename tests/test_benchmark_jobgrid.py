@@ -107,7 +107,7 @@ def test_eval_cli_builds_tables_and_report(tmp_path):
     data = dataset_root(tmp_path, scenes=("fe",), res=24, n_test=2, n_train=2)
     grid = _grid(tmp_path, ["fe"], ["lit_as_albedo", "noisy_gt"])
     cmd = [sys.executable, "-m", "benchmark", "eval", "--config", str(grid), "--data", str(data), "--runs",
-           str(tmp_path / "runs"), "--results", str(tmp_path / "results"), "--jobs", "1"]
+           str(tmp_path / "runs"), "--results", str(tmp_path / "results"), "--jobs", "2"]  # a process pool
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     assert proc.returncode == 0, proc.stderr
     out = tmp_path / "results" / "ci"

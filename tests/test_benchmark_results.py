@@ -61,3 +61,11 @@ def test_corrupt_json_is_named(tmp_path):
     path.write_text("{not json")
     with pytest.raises(UserError, match="results.json: corrupt JSON"):
         read_result(path)
+
+
+def test_result_of_another_protocol_is_not_finished(tmp_path):
+    path = tmp_path / "results.json"
+    write_result(path, fake_result("m"))  # lumimotion, vgg
+    assert is_finished(path, "lumimotion", "vgg")
+    assert not is_finished(path, "strict", "vgg")
+    assert not is_finished(path, "lumimotion", "alex")

@@ -21,6 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--methods", nargs="+", default=None, help="override the grid's methods")
     p.add_argument("--scenes", nargs="+", default=None, help="override the grid's scenes")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="override the grid's seeds")
+    p.add_argument("--protocol", default=None, choices=["lumimotion", "strict"],
+                   help="override the grid's protocol (results scored otherwise are re-scored)")
     p.add_argument("--no-render", action="store_true", help="fail instead of rendering missing scenes")
     p.add_argument("--no-grids", action="store_true", help="skip the GT-vs-prediction image grids")
 
@@ -42,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
         config = replace(config, scenes=tuple(args.scenes))
     if args.seeds:
         config = replace(config, seeds=tuple(args.seeds))
+    if args.protocol:
+        config = replace(config, protocol=args.protocol)
     paths = Paths(Path(args.data), Path(args.runs), Path(args.results), config.profile)
     report = run_grid(config, paths, args.executor, args.jobs, render=not args.no_render)
     for job, outcome in report.failed:
