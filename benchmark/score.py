@@ -113,11 +113,13 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
 
     kinds = {k: pred.has(k) for k in ("nvs", "albedo", "roughness", "normal")}
     kinds["relight"] = pred.has("relight", test_light)
+    relit = sorted(p.name for p in (Path(pred_dir) / "relight").glob("*") if p.is_dir())
+    if relit and not kinds["relight"]:
+        raise UserError(f"missing predictions {Path(pred_dir) / 'relight' / test_light}/: the method relit "
+                        f"{', '.join(relit)} only (run it with test light {test_light})")
     if not any(kinds[k] for k in ("nvs", "albedo", "roughness", "relight")):
-        relit = sorted(p.name for p in (Path(pred_dir) / "relight").glob("*")) if (Path(pred_dir) / "relight").is_dir() else []
-        hint = f" (relight/ holds {', '.join(relit)}, not {test_light})" if relit else ""
         raise UserError(f"no predictions to score in {pred_dir}: expected nvs/, albedo/, roughness/ or "
-                        f"relight/{test_light}/{hint}")
+                        f"relight/{test_light}/ (layout: benchmark/predictions.py)")
 
     # fail fast, before any metric runs: every present kind needs a file for every test view
     for kind, present in kinds.items():

@@ -104,6 +104,8 @@ def test_wrong_size_unknown_light_and_missing_meta(scene, tmp_path):
         score(scene, pred, "city", "sunrise")
     with pytest.raises(UserError, match=r"unknown test light 'moon'.*rendered: city, courtyard, sunrise, sunset"):
         score(scene, pred, "city", "moon")
+    with pytest.raises(UserError, match=r"relight/sunset/: the method relit sunrise only"):
+        score(scene, pred, "city", "sunset")
     (pred / "meta.json").unlink()
     with pytest.raises(UserError, match=r"meta\.json"):
         score(scene, pred, "city", "sunrise")
