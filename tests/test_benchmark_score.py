@@ -138,3 +138,21 @@ def test_score_cli_writes_a_valid_result(scene, tmp_path):
     assert res["method"] == "lit_as_albedo" and res["protocol"] == "strict" and res["status"] == "ok"
     assert math.isfinite(res["metrics"]["relight"]["psnr"])
     assert json.loads(out.read_text())["schema_version"] == 1
+
+
+def test_albedo_alignment_is_per_channel_in_linear_space(scene, tmp_path):
+    """An albedo off by a per-channel factor in linear space scores as perfect after alignment."""
+    from baselines_adapters.base import save
+    from benchmark.predictions import write_meta
+    from benchmark.score import read_gt
+    from lumibench import layout
+
+    factor = np.array([0.5, 0.8, 1.2], np.float32)
+    pred = tmp_path / "scaled"
+    for frame in layout.read_transforms(scene, "test").frames:
+        save(pred, "albedo", frame.stem, read_gt(scene, "albedo", frame.file_path) * factor, fmt="npz")
+    write_meta(pred, {"method": "scaled", "version": "1", "seed": 0})
+    res = score(scene, pred, "city", "sunrise", protocol="strict")
+    assert res["metrics"]["albedo"]["scale"] == pytest.approx(list(1 / factor), rel=1e-4)
+    assert res["metrics"]["albedo"]["psnr"] > 60 and res["metrics"]["albedo"]["lpips"] < 1e-3
+    assert res["metrics"]["relight"] is None and res["per_image"].keys() == {"albedo"}
