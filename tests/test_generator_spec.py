@@ -281,3 +281,12 @@ def test_bounce_touches_down_and_reaches_apex():
 
 def test_scenes_dir_has_only_yaml_specs():
     assert all(p.suffix == ".yaml" for p in SCENES_DIR.iterdir() if p.is_file())
+
+
+def test_swing_is_a_sinusoid_about_the_given_axis():
+    p = {"axis": [0, 0, 1], "amplitude_deg": 30.0, "cycles": 2.0}
+    assert motion.evaluate("swing", 0.125, p).rotation == pytest.approx((0.0, 0.0, math.radians(30.0)))
+    assert motion.evaluate("swing", 0.375, p).rotation == pytest.approx((0.0, 0.0, -math.radians(30.0)))
+    assert motion.evaluate("swing", 0.5, p).rotation == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    # t is clamped to [0, 1]: the pose outside equals the pose at the ends
+    assert motion.evaluate("swing", 1.7, p) == motion.evaluate("swing", 1.0, p)
