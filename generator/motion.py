@@ -196,7 +196,7 @@ def _bounce(t: float, p: dict) -> Pose:
 
 @motion(
     "swing",
-    axis=Param("vec3", (1.0, 0.0, 0.0), "rotation axis: one of the unit axes x, y or z"),
+    axis=Param("vec3", (1.0, 0.0, 0.0), "weights of the angle on the X, Y, Z Euler angles (a unit axis: a plain swing)"),
     amplitude_deg=Param("float", REQUIRED, "peak angle of the swing"),
     cycles=Param("float", 1.0, "full periods over t in [0, 1]"),
     phase=Param("float", 0.0, "fraction of a period to shift the cycle by"),
