@@ -290,3 +290,20 @@ def test_swing_is_a_sinusoid_about_the_given_axis():
     assert motion.evaluate("swing", 0.5, p).rotation == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
     # t is clamped to [0, 1]: the pose outside equals the pose at the ends
     assert motion.evaluate("swing", 1.7, p) == motion.evaluate("swing", 1.0, p)
+
+
+def test_spheres_never_touch_each_other():
+    """The balls hop in separate lanes: centre distances exceed the sum of radii at every time."""
+    spec = load_scene_spec("spheres")
+    balls = [o for o in spec.objects if o.dynamic]
+    assert len(balls) == 4 and all(o.primitive == "sphere" for o in balls)
+    for i in range(1001):
+        t = i / 1000
+        centres = {
+            o.name: [a + b for a, b in zip(o.location, motion.evaluate(o.motion.kind, t, o.motion.params).location)]
+            for o in balls
+        }
+        for a in range(len(balls)):
+            for b in range(a + 1, len(balls)):
+                gap = math.dist(centres[balls[a].name], centres[balls[b].name]) - (balls[a].size[0] + balls[b].size[0]) / 2
+                assert gap > 0.02, f"{balls[a].name} and {balls[b].name} touch at t={t}"
