@@ -44,7 +44,8 @@ class TraceAccel:
     res: tuple[int, int, int]
     cell_start: torch.Tensor  # (n_cells + 1,) CSR offsets into entries
     entries: torch.Tensor  # (E,) splat ids sorted by cell
-    params: torch.Tensor  # (E, 13) per-entry copy of the splat's local map (12) and opacity
+    plane: torch.Tensor  # (E, 4) per-entry copy of the splat's plane (unit normal, offset)
+    uvo: torch.Tensor  # (E, 9) per-entry copy of the maps to u, v (4 each) and the opacity
     alpha_min: float
     num_splats: int
 
@@ -53,8 +54,8 @@ class TraceAccel:
               max_cells: int = 1 << 21) -> "TraceAccel":
         """Register every splat whose opacity can reach ``alpha_min`` in the cells its support overlaps.
 
-        ``cell_size`` defaults to the median support radius (measured best: finer cells multiply the
-        entries, coarser cells the candidates per ray; see BENCHMARKS.md)."""
+        ``cell_size`` defaults to half the median support radius (measured: finer cells multiply the
+        entries and the build time, coarser cells the candidates per ray; see BENCHMARKS.md)."""
         check_splats(means, quats, scales, opacities)
         dev, dt = means.device, means.dtype
         with torch.no_grad():
@@ -69,7 +70,7 @@ class TraceAccel:
                 z = torch.zeros(1, dtype=torch.long, device=dev)
                 return TraceAccel(torch.zeros(3, dtype=dt, device=dev), torch.ones(3, dtype=dt, device=dev),
                                   (1, 1, 1), torch.zeros(2, dtype=torch.long, device=dev), z[:0],
-                                  params[:0], alpha_min, means.shape[0])
+                                  params[:0, 8:12], params[:0, 8:], alpha_min, means.shape[0])
             bmin = (means - half)[live].min(0).values
             bmax = (means + half)[live].max(0).values
             ext = (bmax - bmin).clamp_min(1e-6)
@@ -78,7 +79,7 @@ class TraceAccel:
             ext = bmax - bmin
             if cell_size is None:
                 radius = (k[live] * torch.maximum(scales[live, 0], scales[live, 1]))
-                cell_size = float(radius.median())
+                cell_size = 0.5 * float(radius.median())
             h = max(float(cell_size), float(ext.max()) / 1024.0)
             while math.prod(max(1, math.ceil(float(e) / h)) for e in ext) > max_cells:
                 h *= 1.25
@@ -111,8 +112,9 @@ class TraceAccel:
             n_cells = res[0] * res[1] * res[2]
             counts = torch.bincount(flat, minlength=n_cells)
             cell_start = torch.cat([torch.zeros(1, dtype=torch.long, device=dev), torch.cumsum(counts, 0)])
-            return TraceAccel(bmin, cell, res, cell_start, sid, params.index_select(0, sid), alpha_min,
-                              means.shape[0])
+            p = params.index_select(0, sid)
+            return TraceAccel(bmin, cell, res, cell_start, sid, p[:, 8:12].contiguous(),
+                              torch.cat([p[:, 0:8], p[:, 12:13]], 1), alpha_min, means.shape[0])
 
 
 def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: float, steps_per_round: int):
@@ -141,7 +143,6 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
     log_tmin = math.log(T_min)
     out_ray, out_splat = [], []
     mult = torch.tensor([accel.res[1] * accel.res[2], accel.res[2], 1], device=dev)
-    P = accel.params
     while ray_id.numel():
         # -- up to K cells per ray: (ray, cell, t_in, t_out) records, ray-major
         recs_c, recs_in, recs_out, recs_ok = [], [], [], []
@@ -171,27 +172,34 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         rec_of = torch.repeat_interleave(torch.arange(rec.numel(), device=dev), cnt, output_size=total)
         ent = start.index_select(0, rec_of) + torch.arange(total, device=dev) \
             - (torch.cumsum(cnt, 0) - cnt).index_select(0, rec_of)
-        ray_local = torch.div(rec.index_select(0, rec_of), steps_per_round, rounding_mode="floor")
-        q = P.index_select(0, ent)
-        oo, dd = o.index_select(0, ray_local), d.index_select(0, ray_local)
-        ow = (q[:, 8:11] * oo).sum(1) + q[:, 11]
-        dw = (q[:, 8:11] * dd).sum(1)
-        dws = torch.where(dw.abs() > 1e-30, dw, torch.full_like(dw, 1e-30))
-        t = -ow / dws
-        pu = (q[:, 0:3] * oo).sum(1) + q[:, 3] + t * (q[:, 0:3] * dd).sum(1)
-        pv = (q[:, 4:7] * oo).sum(1) + q[:, 7] + t * (q[:, 4:7] * dd).sum(1)
-        alpha = torch.clamp_max(q[:, 12] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
-        rin, rout = r_in.index_select(0, rec).index_select(0, rec_of), r_out.index_select(0, rec).index_select(0, rec_of)
-        hit = (alpha >= accel.alpha_min) & (t >= rin) & (t < rout) & (t >= t_lo.index_select(0, ray_local)) \
-            & (dw.abs() > 1e-30)
-        hidx = torch.nonzero(hit).squeeze(1)
-        h_rec, h_t = rec_of.index_select(0, hidx), t.index_select(0, hidx)
+        ray_rec = torch.div(rec, steps_per_round, rounding_mode="floor")
+        recd = torch.cat([o.index_select(0, ray_rec), d.index_select(0, ray_rec),
+                          r_in.index_select(0, rec)[:, None], r_out.index_select(0, rec)[:, None]], 1)
+        # phase A (4 floats per candidate): plane hit inside this cell's t-interval
+        qa = accel.plane.index_select(0, ent)
+        r = recd.index_select(0, rec_of)
+        ow = qa[:, 0] * r[:, 0] + qa[:, 1] * r[:, 1] + qa[:, 2] * r[:, 2] + qa[:, 3]
+        dw = qa[:, 0] * r[:, 3] + qa[:, 1] * r[:, 4] + qa[:, 2] * r[:, 5]
+        t = -ow / dw  # dw = 0 gives inf/nan, which fails the interval test
+        sel = torch.nonzero((t >= r[:, 6]) & (t < r[:, 7])).squeeze(1)
+        # phase B (9 floats): local coordinates and alpha of the in-cell hits
+        ent_s, t_s, r_s = ent.index_select(0, sel), t.index_select(0, sel), r.index_select(0, sel)
+        qb = accel.uvo.index_select(0, ent_s)
+        px, py, pz = r_s[:, 0] + t_s * r_s[:, 3], r_s[:, 1] + t_s * r_s[:, 4], r_s[:, 2] + t_s * r_s[:, 5]
+        pu = qb[:, 0] * px + qb[:, 1] * py + qb[:, 2] * pz + qb[:, 3]
+        pv = qb[:, 4] * px + qb[:, 5] * py + qb[:, 6] * pz + qb[:, 7]
+        alpha = torch.clamp_max(qb[:, 8] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+        hs = torch.nonzero(alpha >= accel.alpha_min).squeeze(1)
+        hidx = sel.index_select(0, hs)
+        h_rec, h_t = rec_of.index_select(0, hidx), t_s.index_select(0, hs)
+        rin, rout = r_s[:, 6].index_select(0, hs), r_s[:, 7].index_select(0, hs)
+        ray_local = ray_rec.index_select(0, h_rec)
         # order: record (ray-major, cells front to back), then t within the cell
-        frac = (h_t - rin.index_select(0, hidx)) / (rout.index_select(0, hidx) - rin.index_select(0, hidx)).clamp_min(1e-30)
+        frac = (h_t - rin) / (rout - rin).clamp_min(1e-30)
         order = torch.argsort(h_rec.double() + frac.double().clamp(0.0, 0.999999))
         hidx = hidx.index_select(0, order)
-        h_ray = ray_local.index_select(0, hidx)
-        h_alpha = alpha.index_select(0, hidx)
+        h_ray = ray_local.index_select(0, order)
+        h_alpha = alpha.index_select(0, hs).index_select(0, order)
         segs = Segments(h_ray, ray_id.numel())
         la = torch.log1p(-h_alpha).double()
         before = log_t.index_select(0, h_ray) + segs.exclusive_cumsum(la)
