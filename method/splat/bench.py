@@ -27,13 +27,16 @@ FOV_X = 0.6911112070083618  # Blender default (50 mm lens, 36 mm sensor)
 
 
 def make_scene(n: int, size: int, seed: int = 0, channels: int = 3, device="cpu", dtype=torch.float32,
-               sigma_px: float = 1.0):
-    """Random splats in the scene box and a camera at radius 4; see the module docstring."""
+               sigma_px: float = 1.0, ref_size: int | None = None):
+    """Random splats in the scene box and a camera at radius 4; see the module docstring.
+
+    The median 1-sigma footprint is ``sigma_px`` pixels in an image ``ref_size`` (default ``size``) wide,
+    so a fixed ``ref_size`` keeps the world scene fixed while the resolution changes."""
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g) * 2.0 - 1.0)
     quats = torch.randn(n, 4, generator=g)
     quats = quats / quats.norm(dim=1, keepdim=True)
-    focal = 0.5 * size / math.tan(0.5 * FOV_X)
+    focal = 0.5 * (ref_size or size) / math.tan(0.5 * FOV_X)
     s0 = sigma_px * 4.0 / focal
     scales = s0 * torch.exp(0.5 * torch.randn(n, 2, generator=g))
     opac = 0.1 + 0.9 * torch.rand(n, generator=g)
@@ -68,17 +71,19 @@ def _sync(dev):
         torch.cuda.synchronize()
 
 
-def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1) -> tuple[float, int]:
+def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_size: int | None = None):
+    """Median seconds of rasterize + backward of a loss using every output; also the pair count."""
     from .rasterize import rasterize
 
-    means, quats, scales, opac, feats, cam = make_scene(n, size, device=device)
+    means, quats, scales, opac, feats, cam = make_scene(n, size, device=device, ref_size=ref_size)
     params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, feats)]
-    times, pairs = [], 0
+    times, cpu, pairs = [], [], 0
     for i in range(warmup + repeats):
         for p in params:
             p.grad = None
         _sync(torch.device(device))
         t0 = time.perf_counter()
+        c0 = time.process_time()
         out = rasterize(*params, cam, background=torch.ones(3, device=device))
         loss = out.features.sum() + out.depth_expected.sum() * 0.1 + out.distortion.sum() + out.normal.sum() \
             + (out.normal_from_depth * out.normal).sum()
@@ -86,20 +91,28 @@ def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1) -> tup
         _sync(torch.device(device))
         if i >= warmup:
             times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         pairs = out.num_pairs
-    return statistics.median(times), pairs
+    return statistics.median(times), pairs, statistics.median(cpu)
 
 
-def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup: int = 1) -> dict:
+def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup: int = 1,
+               cell_factor: float | None = None) -> dict:
+    """Median build and query seconds (query: transmittance and features, forward only)."""
     from .trace import TraceAccel, trace
 
     means, quats, scales, opac, feats, _ = make_scene(n, 100, device=device)
     origins, dirs = make_trace_queries(means, quats, scales, n_points, n_dirs)
-    build, query = [], []
+    cell = None
+    if cell_factor is not None:
+        k = torch.sqrt(2.0 * torch.log((opac / 0.01).clamp_min(1.0)))
+        cell = cell_factor * float((k * scales.max(1).values).median())
+    build, query, cpu = [], [], []
     for i in range(warmup + repeats):
         _sync(torch.device(device))
         t0 = time.perf_counter()
-        accel = TraceAccel.build(means, quats, scales, opac)
+        c0 = time.process_time()
+        accel = TraceAccel.build(means, quats, scales, opac, cell_size=cell)
         _sync(torch.device(device))
         t1 = time.perf_counter()
         trans, _ = trace(means, quats, scales, opac, feats, origins, dirs, 0.0, accel=accel)
@@ -108,8 +121,120 @@ def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup:
         if i >= warmup:
             build.append(t1 - t0)
             query.append(t2 - t1)
-    return dict(build=statistics.median(build), query=statistics.median(query),
+            cpu.append(time.process_time() - c0)
+    return dict(build=statistics.median(build), query=statistics.median(query), cpu_seconds=statistics.median(cpu),
                 mean_visibility=float(trans.mean()), cells=list(accel.res), entries=int(accel.entries.numel()))
+
+
+def peak_rss_mb(n: int, size: int, ref_size: int | None) -> dict:
+    """Working memory of one rasterize + backward in a fresh process: the peak resident set size above
+    the resident size just before the call (peak reset through /proc/self/clear_refs, Linux)."""
+    code = (
+        "import torch; torch.set_num_threads(2)\n"
+        "from method.splat.bench import make_scene\n"
+        "from method.splat.rasterize import rasterize\n"
+        f"m, q, s, o, f, cam = make_scene({n}, {size}, ref_size={ref_size!r})\n"
+        "p = [t.requires_grad_(True) for t in (m, q, s, o, f)]\n"
+        "rasterize(*p, cam)\n"  # warm-up: first-call allocations of torch itself are not ours
+        "def kb(key):\n"
+        "    return int([l for l in open('/proc/self/status') if l.startswith(key)][0].split()[1])\n"
+        "open('/proc/self/clear_refs', 'w').write('5')\n"
+        "before = kb('VmRSS:')\n"
+        "out = rasterize(*p, cam)\n"
+        "(out.features.sum() + out.distortion.sum() + out.normal.sum() + out.depth_expected.sum()).backward()\n"
+        "print(before, kb('VmHWM:'), out.num_pairs)\n"
+    )
+    import subprocess
+
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=str(Path(__file__).resolve().parents[2]))
+    before, peak, pairs = (int(v) for v in res.stdout.strip().splitlines()[-1].split())
+    return {"splats": n, "size": size, "pixels": size * size, "fixed_scene": ref_size is not None,
+            "pairs": pairs, "working_mb": (peak - before) / 1024.0}
+
+
+def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
+    """All measurements; writes the charts beside ``out_path``."""
+    from lumibench.progress import track
+
+    res: dict = {"unit": "seconds (median)", "repeats": repeats}
+    keyed = [(100, 20_000)] if quick else [(100, 20_000), (200, 50_000), (400, 200_000)]
+    splat_series = [5_000, 10_000, 20_000] if quick else [5_000, 10_000, 20_000, 40_000, 80_000, 160_000]
+    pixel_series = [50, 100] if quick else [50, 100, 200, 400]
+    jobs = [("key", s, n) for s, n in keyed] + [("splats", 100, n) for n in splat_series] \
+        + [("pixels", s, 20_000) for s in pixel_series]
+    scaling = {"vs_splats_at_100px": [], "vs_pixels_at_20k_fixed_scene": []}
+    for kind, size, n in track(jobs, description="raster"):
+        reps = max(1, repeats if size * size * max(n, 20_000) <= 200 * 200 * 50_000 else repeats // 2)
+        t, pairs, cpu = time_raster(n, size, reps, device, ref_size=100 if kind == "pixels" else None)
+        row = {"pixels": size * size, "size": size, "splats": n, "seconds": t, "pairs": pairs, "cpu_seconds": cpu}
+        if kind == "key":
+            res[f"raster_fwdbwd_{size}px_{n // 1000}k"] = t
+            res.setdefault("raster_detail", {})[f"{size}px_{n // 1000}k"] = row
+        elif kind == "splats":
+            scaling["vs_splats_at_100px"].append(row)
+        else:
+            scaling["vs_pixels_at_20k_fixed_scene"].append(row)
+    res["raster_scaling"] = scaling
+    tr = time_trace(20_000, 1024, 64, repeats, device)
+    res["trace_1024pts_64dirs_20k"] = tr["query"]
+    res["trace_build_20k"] = tr["build"]
+    res["trace_detail"] = tr
+    if not quick:
+        sweep = []
+        for fac in track([0.25, 0.5, 1.0, 2.0], description="trace cell sweep"):
+            r = time_trace(20_000, 1024, 64, max(1, repeats // 2), device, cell_factor=fac)
+            sweep.append({"cell_over_median_radius": fac, **r})
+        res["trace_cell_sweep"] = sweep
+    if device == "cpu":
+        cases = [(20_000, 100, 100), (20_000, 200, 100), (20_000, 400, 100),
+                 (40_000, 100, None), (80_000, 100, None), (160_000, 100, None)]
+        mem = [peak_rss_mb(n, size, ref) for n, size, ref in track(cases[:2] if quick else cases, description="memory")]
+        for r in mem:
+            r["bytes_per_pair"] = r["working_mb"] * 2 ** 20 / max(1, r["pairs"])
+        res["memory"] = mem
+    _chart(res, out_path.with_name("raster_scaling.png"), _device_name(device))
+    return res
+
+
+def _chart(res: dict, path: Path, label: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lumibench.io import atomic_path
+
+    sc = res["raster_scaling"]
+    fig, axes = plt.subplots(1, 3 if "memory" in res else 2, figsize=(13, 3.8))
+    a = sc["vs_splats_at_100px"]
+    axes[0].loglog([r["splats"] for r in a], [r["seconds"] for r in a], "o-")
+    axes[0].set(xlabel="splats (100 x 100 px)", ylabel="fwd + bwd seconds", title="time vs splat count")
+    b = sc["vs_pixels_at_20k_fixed_scene"]
+    axes[1].loglog([r["pixels"] for r in b], [r["seconds"] for r in b], "o-")
+    axes[1].set(xlabel="pixels (20k splats, same scene)", ylabel="fwd + bwd seconds", title="time vs pixel count")
+    for ax, rows in ((axes[0], a), (axes[1], b)):
+        for r in rows:
+            ax.annotate(f"{r['pairs'] / 1e6:.2f}M pairs", (r["splats"] if ax is axes[0] else r["pixels"], r["seconds"]),
+                        fontsize=7, textcoords="offset points", xytext=(3, -10))
+        ax.grid(True, which="both", alpha=0.3)
+    if "memory" in res:
+        m = res["memory"]
+        fixed = [r for r in m if r["fixed_scene"]]
+        more = [r for r in m if not r["fixed_scene"]]
+        axes[2].plot([r["pairs"] / 1e6 for r in fixed], [r["working_mb"] for r in fixed], "o-",
+                     label="20k splats, 100-400 px")
+        axes[2].plot([r["pairs"] / 1e6 for r in more], [r["working_mb"] for r in more], "s-",
+                     label="40k-160k splats, 100 px")
+        axes[2].set(xlabel="(pixel, splat) pairs (millions)", ylabel="peak working memory (MiB)",
+                    title="memory vs pairs")
+        axes[2].grid(True, alpha=0.3)
+        axes[2].legend(fontsize=7)
+    fig.suptitle(f"2DGS rasterizer, {label}", fontsize=9)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
@@ -129,13 +254,15 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     out_path = Path(args.out)
     dev = args.device
-    from .bench_report import run_all
-
-    result = run_all(dev, args.repeats, args.quick, out_path)
+    load_before = list(os.getloadavg())
+    result = {"device": _device_name(dev), "threads": torch.get_num_threads()}
+    result.update(run_all(dev, args.repeats, args.quick, out_path))
     result.update(device=_device_name(dev), threads=torch.get_num_threads(), torch=torch.__version__,
                   python=platform.python_version(), command=" ".join(["python -m method.splat.bench"] + list(argv or sys.argv[1:])))
     from lumibench.io import atomic_write_json
 
+    result["load_average_before"] = load_before
+    result["load_average_after"] = list(os.getloadavg())
     atomic_write_json(out_path, result)
     print(json.dumps({k: v for k, v in result.items() if not isinstance(v, (dict, list))}, indent=1))
     return 0
