@@ -1,10 +1,21 @@
-"""Bit-exact renders: start Blender workers with address-space randomisation off.
+"""Reproducible renders: start Blender workers with address-space randomisation off.
 
-Measured with bpy 5.0.1 (Cycles, CPU): the same scene, seed and settings rendered in two fresh
-processes differ in a few silhouette pixels by ~1e-7 (Normal and Combined passes), with 1 thread as
-with 2, with Embree as with BVH2; under ``setarch -R`` (no ASLR) every run is bit-identical. Some
-ordering inside Blender follows memory addresses. Linux keeps the ADDR_NO_RANDOMIZE personality flag
-across exec, so setting it in the parent while the worker processes start gives them fixed layouts.
+Measured with bpy 5.0.1 (Cycles, CPU, this repository's scenes):
+- the same frame rendered in two fresh processes differed in a few silhouette pixels by ~1e-7 (Normal
+  and Combined passes), with 1 thread as with 2, with Embree as with BVH2; under ``setarch -R`` (no
+  ASLR) fresh processes gave bit-identical passes: some ordering inside Blender follows addresses;
+- even without ASLR, a frame's Normal pass still depends, in the last bit, on what the process rendered
+  before it (with or without persistent data) and occasionally on thread timing; only pixels of moving
+  objects were affected (normals within 6e-8). A fresh process per frame did not remove it completely
+  (3 of 36 frames differed) and cost ~1.4 s of bpy start-up per frame, so the pipeline keeps one
+  persistent worker per job and documents the bound instead: albedo, roughness and dynamic-mask files
+  are byte-identical, normal .npz agree within 1e-5 (silhouette pixels divide by a small coverage),
+  PNGs within one 8-bit step at rare pixels.
+Forking a worker after the scene is built (to give every frame the same history) deadlocks: Blender's
+TBB thread pool does not survive fork.
+
+Linux keeps the ADDR_NO_RANDOMIZE personality flag across exec (and threads inherit it), so setting it
+while the worker processes start gives them fixed layouts.
 """
 from __future__ import annotations
 

@@ -1,0 +1,274 @@
+"""The rendering pipeline: layout, ground truth, shadows, resume, determinism (generator/pipeline.py)."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from generator import cameras, lights, motion, postprocess
+from generator.envmap import read_envmap
+from generator.pipeline import render_scene
+from generator.spec import load_scene_spec
+from lumibench import layout
+from lumibench.io import read_image
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED_ENVMAPS = REPO.parent / "shared" / "data" / "envmaps"
+LIGHTS = list(lights.load_lights())  # the default light set, in lights.yaml order
+
+
+def _files(root: Path) -> dict[Path, Path]:
+    """Dataset files of a DATA/PROFILE tree, without bookkeeping (records, dataset.json hold timings)."""
+    return {p.relative_to(root): p for p in sorted(root.rglob("*"))
+            if p.is_file() and ".frames" not in p.parts and p.name != "dataset.json"}
+
+
+def assert_same_dataset(a: Path, b: Path) -> int:
+    """Byte-identical files, within the measured bound of Blender's run-to-run float noise
+    (generator/determinism.py): normal .npz within 1e-5; a PNG may differ by one 8-bit step at rare pixels."""
+    fa, fb = _files(a), _files(b)
+    assert sorted(fa) == sorted(fb)
+    loose = 0  # files equal only within the bound
+    for rel, pa in fa.items():
+        if pa.read_bytes() == fb[rel].read_bytes():
+            continue
+        loose += 1
+        x, y = read_image(pa), read_image(fb[rel])
+        if rel.suffix == ".npz":
+            assert rel.parts[1] == "normal", rel  # albedo, roughness and dynamic_mask must be exact
+            np.testing.assert_allclose(x, y, atol=1e-5, err_msg=str(rel))
+        else:
+            d = np.abs(x - y)
+            assert d.max() <= 1.5 / 255 and (d > 0).mean() < 0.01, rel
+    return loose
+
+
+# ---- post-processing, no Blender ---------------------------------------------------------------------
+
+
+def test_ground_truth_normalised_by_coverage():
+    h = w = 2
+    alpha = np.array([[1.0, 0.5], [0.25, 0.0]], np.float32)
+    layers = {"Combined.A": alpha, "albedo.R": 0.6 * alpha, "albedo.G": 0.2 * alpha, "albedo.B": 0.1 * alpha,
+              "roughness.X": 0.3 * alpha, "dynamic.X": np.array([[1.0, 0.5], [0.0, 0.0]], np.float32),
+              "Normal.X": 0.0 * alpha, "Normal.Y": 0.6 * alpha, "Normal.Z": 0.8 * alpha}
+    gt = postprocess.ground_truth_arrays(layers)
+    fg = alpha > 0
+    np.testing.assert_allclose(gt["albedo"][fg], np.tile([0.6, 0.2, 0.1], (3, 1)), rtol=1e-6)
+    np.testing.assert_allclose(gt["roughness"][fg][:, 0], 0.3, rtol=1e-6)
+    np.testing.assert_allclose(gt["normal"][fg], np.tile([0.0, 0.6, 0.8], (3, 1)), rtol=1e-6)
+    assert np.all(gt["albedo"][~fg] == 0) and np.all(gt["normal"][~fg] == 0)
+    # the dynamic mask keeps its coverage meaning
+    np.testing.assert_allclose(gt["dynamic_mask"][..., 0], [[1.0, 0.5], [0.0, 0.0]])
+    assert gt["albedo"].shape == (h, w, 3) and gt["roughness"].shape == (h, w, 1)
+
+
+def test_npz_bytes_reproducible_and_readable(tmp_path):
+    a = np.random.default_rng(0).random((5, 4, 3)).astype(np.float32)
+    postprocess.write_npz(tmp_path / "a.npz", "albedo", a)
+    time.sleep(1.1)  # numpy's own savez would stamp a different time now
+    postprocess.write_npz(tmp_path / "b.npz", "albedo", a)
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
+    np.testing.assert_array_equal(read_image(tmp_path / "a.npz"), a)
+    assert zipfile.ZipFile(tmp_path / "a.npz").namelist() == ["albedo.npy"]
+
+
+# ---- the rendered ci dataset -------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_ci_dataset_layout(ci_dataset, ci_profile):
+    spec = load_scene_spec(ci_dataset.name)
+    n = min(ci_profile.frames_for(spec.name), spec.frames_full)
+    static = ci_dataset.parent / layout.static_scene_name(spec.name, ci_profile.static_timestep)
+    t_static = ci_profile.static_timestep / (n - 1)
+    for scene in (ci_dataset, static):
+        assert layout.is_complete(scene), scene
+        meta = json.loads((scene / "dataset.json").read_text())
+        assert list(meta)[-1] == "complete" and meta["spec_hash"] == spec.spec_hash()
+        assert meta["seed"] == spec.seed and meta["profile"]["name"] == "ci" and meta["blender_version"]
+        assert [lt["name"] for lt in meta["lights"]] == LIGHTS
+        train = layout.read_transforms(scene, "train")
+        test = layout.read_transforms(scene, "test")
+        assert len(train.frames) == n and len(test.frames) == ci_profile.test_views
+        assert train.camera_angle_x == pytest.approx(spec.camera.camera_angle_x)
+        assert [f.file_path for f in train.frames] == [f"train/r_{i:04d}" for i in range(n)]
+        if scene == ci_dataset:
+            times = [f.time for f in train.frames]
+            assert times[0] == 0.0 and times[-1] == 1.0 and np.all(np.diff(times) > 0)
+        else:
+            assert all(f.time == pytest.approx(t_static) for f in train.frames)
+        assert all(f.time == pytest.approx(t_static) for f in test.frames)
+        assert len(meta["frame_seconds"]) == n + ci_profile.test_views
+        for split, tr in (("train", train), ("test", test)):
+            for f in tr.frames:
+                for light in LIGHTS:
+                    img = read_image(layout.lit_image_path(scene, light, f.file_path))
+                    assert img.shape == (ci_profile.resolution, ci_profile.resolution, 4)
+                for kind, ch in (("albedo", 3), ("roughness", 1), ("normal", 3), ("dynamic_mask", 1)):
+                    assert layout.gt_path(scene, kind, f.file_path).is_file()
+                    arr = read_image(layout.gt_path(scene, kind, f.file_path, ".npz"))
+                    assert arr.shape == (ci_profile.resolution, ci_profile.resolution, ch), (kind, arr.shape)
+        # the env maps written beside the scene are the 32 x 16 maps of lights.yaml (RGBE precision)
+        for light in LIGHTS:
+            written = read_envmap(layout.envmap_path(scene, light))
+            expected = lights.prepare_envmap(lights.resolve_light(light))
+            assert written.shape == (16, 32, 3)
+            # RGBE: an 8-bit mantissa shared by the texel, so the error scales with its largest channel
+            assert np.all(np.abs(written - expected) <= expected.max(-1, keepdims=True) / 128 + 1e-6)
+            assert (scene / f"{light}.png").is_file()
+    # the static variant's test split is the same set of images as the dynamic one's
+    for rel in ("city/test/r_0000.png", "albedo/test/r_0001.npz", "sunset/train/r_0000.png"):
+        assert (ci_dataset / rel).read_bytes() == (static / rel).read_bytes(), rel
+    # no temporary or staging file survives a finished run
+    assert not list(ci_dataset.parent.rglob(".tmp-*")) and not list(ci_dataset.parent.rglob("*.exr"))
+
+
+@pytest.mark.slow
+def test_ground_truth_matches_spec_materials(ci_dataset):
+    """At the projected centre of the red ball (uniform material), GT = the spec's values, in linear space."""
+    spec = load_scene_spec(ci_dataset.name)
+    ball = spec.object("ball_red")
+    tr = layout.read_transforms(ci_dataset, "train")
+    hits = 0
+    for f in tr.frames:
+        pose = motion.evaluate(ball.motion.kind, f.time, ball.motion.params)
+        centre = np.add(ball.location, pose.location)
+        px, depth = cameras.project(centre[None], f.c2w, tr.camera_angle_x, 64, 64)
+        x, y = np.floor(px[0]).astype(int)
+        if not (0 <= x < 64 and 0 <= y < 64) or depth[0] <= 0:
+            continue
+        albedo = read_image(layout.gt_path(ci_dataset, "albedo", f.file_path, ".npz"))[y, x]
+        if not np.allclose(albedo, ball.material.base_color, atol=1e-5):
+            continue  # another ball in front of it
+        hits += 1
+        rough = read_image(layout.gt_path(ci_dataset, "roughness", f.file_path, ".npz"))[y, x, 0]
+        dyn = read_image(layout.gt_path(ci_dataset, "dynamic_mask", f.file_path, ".npz"))[y, x, 0]
+        normal = read_image(layout.gt_path(ci_dataset, "normal", f.file_path, ".npz"))[y, x]
+        assert rough == pytest.approx(ball.material.roughness, abs=1e-5)
+        assert dyn == pytest.approx(1.0)
+        to_cam = f.c2w[:3, 3] - centre
+        assert np.dot(normal, to_cam / np.linalg.norm(to_cam)) > 0.8  # world space, facing the camera
+        assert np.linalg.norm(normal) == pytest.approx(1.0, abs=1e-5)
+        # the 8-bit albedo PNG is the sRGB encoding of the linear value
+        png = read_image(layout.gt_path(ci_dataset, "albedo", f.file_path))[y, x, :3]
+        np.testing.assert_allclose(png, postprocess.srgb_encode(albedo), atol=1.0 / 255)
+    assert hits >= len(tr.frames) // 2, f"red ball's albedo found in only {hits} frames"
+    # a static receiver has mask 0
+    plate_mask = [read_image(layout.gt_path(ci_dataset, "dynamic_mask", f.file_path, ".npz")) for f in tr.frames]
+    assert min(float((m == 0).mean()) for m in plate_mask) > 0.5
+
+
+@pytest.mark.slow
+def test_lit_images_differ_across_lights_ground_truth_does_not(ci_dataset, tmp_path):
+    """Lit images depend on the light; GT does not: a run under another light (a user .hdr file when the
+    shared maps exist) reproduces the ci dataset's GT files and its lit image bytes exactly."""
+    f = "train/r_0000"
+    imgs = {lt: read_image(layout.lit_image_path(ci_dataset, lt, f)) for lt in LIGHTS}
+    for i, a in enumerate(LIGHTS):
+        for b in LIGHTS[i + 1:]:
+            assert np.abs(imgs[a][..., :3] - imgs[b][..., :3]).mean() > 0.02, (a, b)
+            np.testing.assert_array_equal(imgs[a][..., 3], imgs[b][..., 3])  # same coverage
+    user = sorted(SHARED_ENVMAPS.glob("*.hdr"))[:1]
+    light_args = [str(user[0]), "sunset"] if user else ["sunset"]
+    other = render_scene(ci_dataset.name, "ci", tmp_path, jobs=1, lights=light_args, progress=False,
+                         frames=2, test_views=1)  # camera 0 at time 0 is the same as in the 16-frame run
+    for kind in ("albedo", "roughness", "dynamic_mask"):  # material constants: bit-identical
+        for ext in (".npz", ".png"):
+            assert layout.gt_path(other, kind, f, ext).read_bytes() == \
+                layout.gt_path(ci_dataset, kind, f, ext).read_bytes(), (kind, ext)
+    # normals: Blender's float results shift by ~1e-7 when the allocation history differs (another light
+    # set here; see generator/determinism.py), so compare them with a tolerance
+    np.testing.assert_allclose(read_image(layout.gt_path(other, "normal", f, ".npz")),
+                               read_image(layout.gt_path(ci_dataset, "normal", f, ".npz")), atol=1e-5)
+    same_light = np.abs(read_image(layout.lit_image_path(other, "sunset", f))
+                        - read_image(layout.lit_image_path(ci_dataset, "sunset", f)))
+    assert same_light.max() <= 1.5 / 255
+    if user:
+        name = user[0].stem
+        assert read_envmap(layout.envmap_path(other, name)).shape == (16, 32, 3)
+        assert np.abs(read_image(layout.lit_image_path(other, name, f))[..., :3] - imgs["sunset"][..., :3]).mean() > 0.01
+
+
+@pytest.mark.slow
+def test_cast_shadow_on_receivers(ci_dataset, tmp_path):
+    """Under the sunny light, receiver pixels are darker with the moving balls present than with them removed
+    (SceneSpec.without), far more often than sampling noise makes them brighter."""
+    spec = load_scene_spec(ci_dataset.name)
+    bare = spec.without(*spec.dynamic_object_names())
+    n = 4  # cameras 0..3 are the ci run's (the camera sequence does not depend on the frame count)
+    out = render_scene(spec.name, "ci", tmp_path, jobs=1, lights=["city"], progress=False, spec=bare,
+                       frames=n, test_views=1)
+    darker = brighter = 0
+    ratios = []
+    for i in range(n):
+        f = f"train/r_{i:04d}"
+        with_balls = read_image(layout.lit_image_path(ci_dataset, "city", f))
+        without = read_image(layout.lit_image_path(out, "city", f))
+        dyn = read_image(layout.gt_path(ci_dataset, "dynamic_mask", f, ".npz"))[..., 0]
+        receiver = (dyn == 0) & (with_balls[..., 3] == 1.0) & (without[..., 3] == 1.0)
+        ratio = with_balls[..., :3].mean(-1)[receiver] / np.maximum(without[..., :3].mean(-1)[receiver], 1e-3)
+        darker += int((ratio < 0.7).sum())
+        brighter += int((ratio > 1 / 0.7).sum())
+        ratios.append(ratio)
+    ratios = np.concatenate(ratios)
+    assert darker >= 10 and darker >= 4 * brighter, (darker, brighter, float(ratios.min()))
+    assert np.median(ratios) == pytest.approx(1.0, abs=0.05)  # the rest of the receivers is unchanged
+
+
+@pytest.mark.slow
+def test_deleted_frame_is_the_only_one_rendered_again(ci_dataset, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(ci_dataset.parent.parent, data)
+    scene = data / "ci" / ci_dataset.name
+    victim = layout.lit_image_path(scene, "courtyard", "train/r_0003")
+    victim.unlink()
+    static_copy = scene.parent / f"{scene.name}_statictimestep0000" / "albedo" / "test" / "r_0001.png"
+    static_copy.unlink()  # a copied frame is copied again, not rendered
+    rendered = []
+    render_scene(scene.name, "ci", data, jobs=1, progress=False, on_rendered=lambda job, rec: rendered.append(job.label))
+    assert rendered == [f"{scene.name}/train/r_0003"]
+    d = np.abs(read_image(victim) - read_image(ci_dataset / victim.relative_to(scene)))
+    assert d.max() <= 1.5 / 255 and (d > 0).mean() < 0.01  # rendered twice -> the same image
+    assert_same_dataset(data / "ci", ci_dataset.parent)
+    assert layout.is_complete(scene)
+    # nothing left to do: a second run renders nothing
+    rendered.clear()
+    render_scene(scene.name, "ci", data, jobs=1, progress=False, on_rendered=lambda job, rec: rendered.append(job.label))
+    assert rendered == []
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_to_identical_files(ci_dataset, tmp_path):
+    data = tmp_path / "data"
+    cmd = [sys.executable, "-m", "generator", "dataset", "--profile", "ci", "--scenes", ci_dataset.name,
+           "--data", str(data), "--jobs", "1", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    records = data / "ci" / ci_dataset.name / ".frames" / "train"
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list(records.glob("*.json"))) < 5 and proc.poll() is None:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run finished before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    scene = data / "ci" / ci_dataset.name
+    assert not layout.is_complete(scene)
+    done = sorted(records.glob("*.json"))
+    assert 5 <= len(done) < 16
+    for rec in done:  # a frame with a record has all its files; the frame in flight has no record
+        f = f"train/{rec.stem}"
+        assert all(layout.lit_image_path(scene, lt, f).is_file() for lt in LIGHTS)
+        assert all(layout.gt_path(scene, k, f, ext).is_file() for k in layout.GT_KINDS for ext in (".png", ".npz"))
+    rerun = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert layout.is_complete(scene)
+    assert_same_dataset(data / "ci", ci_dataset.parent)
