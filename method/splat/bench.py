@@ -47,6 +47,44 @@ def make_scene(n: int, size: int, seed: int = 0, channels: int = 3, device="cpu"
     return means.to(**to), quats.to(**to), scales.to(**to), opac.to(**to), feats.to(**to), cam
 
 
+def make_surface_scene(n: int, seed: int = 0, device="cpu", dtype=torch.float32):
+    """Splats lying on surfaces, as a trained scene has them: 40 % on a ground square, 60 % on three
+    spheres, tangent to the surface, sized to cover it about twice, opacities uniform in [0.6, 1]."""
+    g = torch.Generator().manual_seed(seed)
+    n_ground = int(0.4 * n)
+    n_sph = n - n_ground
+    ground = torch.cat([torch.rand(n_ground, 2, generator=g) * 3.0 - 1.5, torch.full((n_ground, 1), -0.8)], 1)
+    g_normal = torch.tensor([0.0, 0.0, 1.0]).expand(n_ground, 3)
+    centres = torch.tensor([[-0.6, -0.3, -0.3], [0.5, 0.2, -0.35], [0.0, 0.7, 0.0]])
+    radii = torch.tensor([0.5, 0.45, 0.6])
+    which = torch.randint(0, 3, (n_sph,), generator=g)
+    v = torch.randn(n_sph, 3, generator=g)
+    v = v / v.norm(dim=1, keepdim=True)
+    sph = centres[which] + radii[which, None] * v
+    means = torch.cat([ground, sph], 0)
+    normals = torch.cat([g_normal, v], 0)
+    # quaternion whose rotation takes +z to the normal, with a random twist about it
+    z = torch.tensor([0.0, 0.0, 1.0]).expand(n, 3)
+    axis = torch.linalg.cross(z, normals)
+    s_ = axis.norm(dim=1, keepdim=True)
+    c_ = (z * normals).sum(1, keepdim=True)
+    half = torch.atan2(s_, c_) / 2
+    axis = torch.where(s_ > 1e-8, axis / s_.clamp_min(1e-8), torch.tensor([1.0, 0.0, 0.0]).expand(n, 3))
+    q_align = torch.cat([torch.cos(half), torch.sin(half) * axis], 1)
+    tw = torch.rand(n, 1, generator=g) * math.pi
+    q_twist = torch.cat([torch.cos(tw), torch.zeros(n, 2), torch.sin(tw)], 1)  # about local z
+    w1, v1 = q_align[:, :1], q_align[:, 1:]
+    w2, v2 = q_twist[:, :1], q_twist[:, 1:]
+    quats = torch.cat([w1 * w2 - (v1 * v2).sum(1, keepdim=True), w1 * v2 + w2 * v1 + torch.linalg.cross(v1, v2)], 1)
+    area = 9.0 + float((4 * math.pi * radii ** 2).sum())
+    s0 = math.sqrt(2.0 * area / n / math.pi)
+    scales = s0 * torch.exp(0.3 * torch.randn(n, 2, generator=g))
+    opac = 0.6 + 0.4 * torch.rand(n, generator=g)
+    feats = torch.rand(n, 3, generator=g)
+    to = dict(device=device, dtype=dtype)
+    return means.to(**to), quats.to(**to), scales.to(**to), opac.to(**to), feats.to(**to)
+
+
 def make_trace_queries(means, quats, scales, n_points: int, n_dirs: int, seed: int = 1):
     """Surface points on random splats, each with its own hemisphere directions around the splat normal
     (as stage 2 does per pixel), origins offset by 0.05 along the direction."""
@@ -97,11 +135,14 @@ def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_si
 
 
 def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup: int = 1,
-               cell_factor: float | None = None) -> dict:
+               cell_factor: float | None = None, surfaces: bool = False) -> dict:
     """Median build and query seconds (query: transmittance and features, forward only)."""
     from .trace import TraceAccel, trace
 
-    means, quats, scales, opac, feats, _ = make_scene(n, 100, device=device)
+    if surfaces:
+        means, quats, scales, opac, feats = make_surface_scene(n, device=device)
+    else:
+        means, quats, scales, opac, feats, _ = make_scene(n, 100, device=device)
     origins, dirs = make_trace_queries(means, quats, scales, n_points, n_dirs)
     cell = None
     if cell_factor is not None:
@@ -180,6 +221,9 @@ def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
     res["trace_1024pts_64dirs_20k"] = tr["query"]
     res["trace_build_20k"] = tr["build"]
     res["trace_detail"] = tr
+    ts = time_trace(20_000, 1024, 64, repeats, device, surfaces=True)
+    res["trace_1024pts_64dirs_20k_surfaces"] = ts["query"]
+    res["trace_detail_surfaces"] = ts
     if not quick:
         sweep = []
         for fac in track([0.25, 0.5, 1.0, 2.0], description="trace cell sweep"):

@@ -131,35 +131,36 @@ def _screen_bounds(proj, opacities, camera: Camera, near: float, shift=None):
 
 
 def _pair_terms(g, x, y):
-    """Shared forward algebra of a packed pair: (c0, c1, inv c2, rho3, dx, dy, rho2, use3)."""
-    c0 = g[:, 0] + x * g[:, 3] + y * g[:, 6]
-    c1 = g[:, 1] + x * g[:, 4] + y * g[:, 7]
-    c2 = g[:, 2] + x * g[:, 5] + y * g[:, 8]
+    """Shared forward algebra of packed pairs, g = (14, P) gathered rows (structure of arrays)."""
+    c0 = g[0] + x * g[3] + y * g[6]
+    c1 = g[1] + x * g[4] + y * g[7]
+    c2 = g[2] + x * g[5] + y * g[8]
     tiny = 1e-30 if c2.dtype == torch.float64 else 1e-20
     c2 = torch.where(c2.abs() > tiny, c2, torch.full_like(c2, tiny))
     inv = 1.0 / c2
     u = c0 * inv
     v = c1 * inv
     rho3 = u * u + v * v
-    dx = x - g[:, 10]
-    dy = y - g[:, 11]
+    dx = x - g[10]
+    dy = y - g[11]
     rho2 = 2.0 * (dx * dx + dy * dy)
     use3 = rho3 <= rho2
     return u, v, inv, rho3, dx, dy, rho2, use3
 
 
 class _PairAlpha(torch.autograd.Function):
-    """alpha, hit depth of packed pairs from gathered per-splat rows (see _pack_rows); fused backward
-    (autograd on column slices would allocate a full (P, 14) zero tensor per slice)."""
+    """alpha, hit depth of packed pairs from gathered per-splat rows g (14, P) (see _pack_rows), with a
+    fused backward (autograd on slices would allocate a full zero tensor per slice). Rows are kept as a
+    structure of arrays: gathers and scatter-adds of (14, P) run ~2x faster on CPU than of (P, 14)."""
 
     @staticmethod
     def forward(ctx, g, x, y):
         u, v, inv, rho3, dx, dy, rho2, use3 = _pair_terms(g, x, y)
         rho = torch.where(use3, rho3, rho2)
         gauss = torch.exp(-0.5 * rho)
-        raw = g[:, 13] * gauss
+        raw = g[13] * gauss
         alpha = torch.clamp_max(raw, ALPHA_MAX)
-        depth = torch.where(use3, g[:, 9] * inv, g[:, 12])
+        depth = torch.where(use3, g[9] * inv, g[12])
         ctx.save_for_backward(g, x, y, u, v, inv, dx, dy, use3, gauss, raw < ALPHA_MAX, depth)
         return alpha, depth
 
@@ -168,7 +169,7 @@ class _PairAlpha(torch.autograd.Function):
         g, x, y, u, v, inv, dx, dy, use3, gauss, unclamped, depth = ctx.saved_tensors
         ga = torch.where(unclamped, g_alpha, torch.zeros_like(g_alpha))
         g_o = ga * gauss
-        g_rho = g_o * g[:, 13] * -0.5
+        g_rho = g_o * g[13] * -0.5
         g3 = torch.where(use3, g_rho, torch.zeros_like(g_rho))
         gd3 = torch.where(use3, g_depth, torch.zeros_like(g_depth))
         g2 = g_rho - g3
@@ -177,13 +178,12 @@ class _PairAlpha(torch.autograd.Function):
         gc2 = -(2.0 * g3 * (u * u + v * v) + gd3 * depth) * inv
         gcx = -4.0 * g2 * dx
         gcy = -4.0 * g2 * dy
-        gc = torch.stack([gc0, gc1, gc2], 1)
-        out = torch.cat([gc, x[:, None] * gc, y[:, None] * gc, (gd3 * inv)[:, None], gcx[:, None],
-                         gcy[:, None], (g_depth - gd3)[:, None], g_o[:, None]], 1)
+        out = torch.stack([gc0, gc1, gc2, x * gc0, x * gc1, x * gc2, y * gc0, y * gc1, y * gc2, gd3 * inv,
+                           gcx, gcy, g_depth - gd3, g_o], 0)
         gx = gy = None
         if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
-            gx = (gc * g[:, 3:6]).sum(1) - gcx
-            gy = (gc * g[:, 6:9]).sum(1) - gcy
+            gx = gc0 * g[3] + gc1 * g[4] + gc2 * g[5] - gcx
+            gy = gc0 * g[6] + gc1 * g[7] + gc2 * g[8] - gcy
         return out, gx, gy
 
 
@@ -199,73 +199,15 @@ class _NoCtx:
         pass
 
 
+def _gather_cols(mat: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Columns ``idx`` of a (K, N) tensor -> (K, len(idx)); its backward is a (K, N) scatter-add."""
+    return torch.gather(mat, 1, idx[None, :].expand(mat.shape[0], idx.numel()))
+
+
 def _pack_rows(proj, opacities):
     """(N, 14) per-splat rows: A, B, C, det, centre x, centre y, centre depth, opacity."""
     return torch.cat([proj["A"], proj["B"], proj["C"], proj["det"][:, None], proj["centre"],
                       proj["z"][:, None], opacities[:, None]], 1)
-
-
-def _box_classes(bw: torch.Tensor, bh: torch.Tensor):
-    """Group splats by box size rounded up to powers of two: yields (members, Sh, Sw)."""
-    lw = torch.ceil(torch.log2(bw.double())).long()
-    lh = torch.ceil(torch.log2(bh.double())).long()
-    key = lh * 64 + lw
-    uniq = torch.unique(key).tolist()
-    for k in uniq:
-        members = torch.nonzero(key == k).squeeze(1)
-        yield members, 1 << (k // 64), 1 << (k % 64)
-
-
-def _candidate_pairs(rows, x0, x1, y0, y1, valid, width: int, height: int, near: float,
-                     chunk_elems: int = 1 << 22):
-    """No-grad: every (splat, pixel) in the splat's box with alpha >= 1/255 and hit depth >= near.
-
-    Boxes are evaluated densely per power-of-two size class with broadcasting (no per-pair gathers);
-    work is chunked so that temporaries stay below ``chunk_elems`` elements.
-    Returns (splat index, pixel index, alpha), unordered.
-    """
-    dev, dt = rows.device, rows.dtype
-    idx = torch.nonzero(valid).squeeze(1)
-    out_s, out_p, out_a = [], [], []
-    if idx.numel() == 0:
-        e = torch.zeros(0, dtype=torch.long, device=dev)
-        return e, e, torch.zeros(0, dtype=dt, device=dev)
-    bw = (x1 - x0 + 1)[idx]
-    bh = (y1 - y0 + 1)[idx]
-    for members, sh, sw in _box_classes(bw, bh):
-        sel_all = idx[members]
-        step = max(1, chunk_elems // (sh * sw))
-        ar_x = torch.arange(sw, device=dev)
-        ar_y = torch.arange(sh, device=dev)
-        for s0 in range(0, sel_all.numel(), step):
-            sel = sel_all[s0:s0 + step]
-            r = rows[sel]
-            xi = x0[sel, None] + ar_x[None, :]  # (n, sw)
-            yi = y0[sel, None] + ar_y[None, :]  # (n, sh)
-            xf = (xi.to(dt) + 0.5)[:, None, :]
-            yf = (yi.to(dt) + 0.5)[:, :, None]
-            col = lambda j: r[:, j, None, None]  # noqa: E731
-            c0 = col(0) + xf * col(3) + yf * col(6)
-            c1 = col(1) + xf * col(4) + yf * col(7)
-            c2 = col(2) + xf * col(5) + yf * col(8)
-            tiny = 1e-30 if dt == torch.float64 else 1e-20
-            c2 = torch.where(c2.abs() > tiny, c2, torch.full_like(c2, tiny))
-            inv = 1.0 / c2
-            rho3 = (c0 * c0 + c1 * c1) * (inv * inv)
-            dx = xf - col(10)
-            dy = yf - col(11)
-            rho2 = 2.0 * (dx * dx + dy * dy)
-            use3 = rho3 <= rho2
-            rho = torch.where(use3, rho3, rho2)
-            alpha = torch.clamp_max(col(13) * torch.exp(-0.5 * rho), ALPHA_MAX)
-            depth = torch.where(use3, col(9) * inv, col(12))
-            inside = ((xi <= x1[sel, None]) & (xi < width))[:, None, :] & ((yi <= y1[sel, None]) & (yi < height))[:, :, None]
-            ok = (alpha >= ALPHA_MIN) & (depth >= near) & inside
-            i, jy, jx = torch.nonzero(ok, as_tuple=True)
-            out_s.append(sel[i])
-            out_p.append(yi[i, jy] * width + xi[i, jx])
-            out_a.append(alpha[i, jy, jx])
-    return torch.cat(out_s), torch.cat(out_p), torch.cat(out_a)
 
 
 def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near: float, margin: float = 0.01):
@@ -321,7 +263,9 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     # per-pixel exact test, rows grouped by span length (powers of two) and evaluated densely with
     # broadcasting: one gather of row parameters per group instead of per-pixel gathers
     rowp = torch.stack([a0, a1, a2, b0, b1, b2, g[:, 10], dy * dy, g[:, 9], g[:, 12], g[:, 13]], 1)
-    lw = torch.ceil(torch.log2(cnt.clamp_min(1).double())).long()
+    # class = exact span length up to 12 (no padding), then powers of two
+    pow2 = torch.pow(2, torch.ceil(torch.log2(cnt.clamp_min(1).double()))).long()
+    lw = torch.where(cnt <= 12, cnt, pow2)
     lw = torch.where(cnt > 0, lw, torch.full_like(lw, -1))
     out_r, out_x, out_a = [], [], []
     tiny = 1e-30 if dt == torch.float64 else 1e-20
@@ -329,7 +273,7 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
         if lev < 0:
             continue
         rr = torch.nonzero(lw == lev).squeeze(1)
-        S = 1 << lev
+        S = lev
         ar = torch.arange(S, device=dev)
         q = rowp.index_select(0, rr)
         col = [q[:, k:k + 1] for k in range(11)]
@@ -346,7 +290,9 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
         use3 = rho3 <= rho2
         alpha = torch.clamp_max(col[10] * torch.exp(-0.5 * torch.where(use3, rho3, rho2)), ALPHA_MAX)
         depth = torch.where(use3, col[8] * inv, col[9])
-        ok = (alpha >= ALPHA_MIN) & (depth >= near) & (ar[None, :] < cnt.index_select(0, rr)[:, None])
+        ok = (alpha >= ALPHA_MIN) & (depth >= near)
+        if S > 12:
+            ok &= ar[None, :] < cnt.index_select(0, rr)[:, None]
         flat = torch.nonzero(ok.reshape(-1)).squeeze(1)
         out_r.append(rr.index_select(0, torch.div(flat, S, rounding_mode="floor")))
         out_x.append(xi.reshape(-1).index_select(0, flat))
@@ -372,7 +318,8 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     H, W = camera.height, camera.width
     dev, dt = means.device, means.dtype
     cam = camera if (camera.device == dev and camera.dtype == dt) else camera.to(dev, dt)
-    proj = project_splats(means, quats, scales, opacities, cam)
+    with torch.profiler.record_function("splat:project"):
+        proj = project_splats(means, quats, scales, opacities, cam)
 
     # ---- no-grad: bounds, candidates, exact alpha test, sort by pixel, stop at T < 1e-4 ----
     with torch.no_grad():
@@ -382,7 +329,10 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         rows = _pack_rows(detached, opacities.detach())
         if shift is not None:
             rows = _shift_rows(rows, shift)
-        sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near)
+        with torch.profiler.record_function("splat:candidates"):
+            sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near)
+        rf = torch.profiler.record_function("splat:sort_and_stop")
+        rf.__enter__()
         rank = torch.empty(n, dtype=torch.long, device=dev)
         rank[torch.argsort(detached["z"], stable=True)] = torch.arange(n, device=dev)
         key = pix * n + rank.index_select(0, sid)
@@ -395,19 +345,22 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         segs = Segments(pix, H * W)
         visible = torch.zeros(n, dtype=torch.bool, device=dev)
         visible[sid] = True
+        rf.__exit__(None, None, None)
 
     # ---- with gradients, survivors only ----
     rows = _pack_rows(proj, opacities)
     if screen_offsets is not None:
         rows = _shift_rows(rows, screen_offsets)
-    g = rows.index_select(0, sid)
+    g = _gather_cols(rows.T, sid)
     px = (pix % W).to(dt) + 0.5
     py = torch.div(pix, W, rounding_mode="floor").to(dt) + 0.5
-    alpha, depth = _pair_alpha(g, px, py)
+    with torch.profiler.record_function("splat:pair_alpha"):
+        alpha, depth = _pair_alpha(g, px, py)
     C = features.shape[1]
-    attrs = torch.cat([features, proj["normal"]], 1).index_select(0, sid)
+    attrs = _gather_cols(torch.cat([features, proj["normal"]], 1).T, sid).T
     m_scale = distortion_far / (distortion_far - distortion_near)
-    acc, dsum, dist, log_t, trans = composite(alpha, depth, attrs, segs, m_scale, distortion_near)
+    with torch.profiler.record_function("splat:composite"):
+        acc, dsum, dist, log_t, trans = composite(alpha, depth, attrs, segs, m_scale, distortion_near)
     t_final = torch.exp(log_t)
     alpha_img = 1.0 - t_final
     feat = acc[:, :C]

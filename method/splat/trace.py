@@ -44,8 +44,8 @@ class TraceAccel:
     res: tuple[int, int, int]
     cell_start: torch.Tensor  # (n_cells + 1,) CSR offsets into entries
     entries: torch.Tensor  # (E,) splat ids sorted by cell
-    plane: torch.Tensor  # (E, 4) per-entry copy of the splat's plane (unit normal, offset)
-    uvo: torch.Tensor  # (E, 9) per-entry copy of the maps to u, v (4 each) and the opacity
+    plane: torch.Tensor  # (4, E) per-entry copy of the splat's plane (unit normal, offset), column-major
+    uvo: torch.Tensor  # (9, E) per-entry copy of the maps to u, v (4 each) and the opacity
     alpha_min: float
     num_splats: int
 
@@ -70,7 +70,8 @@ class TraceAccel:
                 z = torch.zeros(1, dtype=torch.long, device=dev)
                 return TraceAccel(torch.zeros(3, dtype=dt, device=dev), torch.ones(3, dtype=dt, device=dev),
                                   (1, 1, 1), torch.zeros(2, dtype=torch.long, device=dev), z[:0],
-                                  params[:0, 8:12], params[:0, 8:], alpha_min, means.shape[0])
+                                  params[:0, 8:12].T.contiguous(), params[:0, 8:].T.contiguous(), alpha_min,
+                                  means.shape[0])
             bmin = (means - half)[live].min(0).values
             bmax = (means + half)[live].max(0).values
             ext = (bmax - bmin).clamp_min(1e-6)
@@ -113,8 +114,13 @@ class TraceAccel:
             counts = torch.bincount(flat, minlength=n_cells)
             cell_start = torch.cat([torch.zeros(1, dtype=torch.long, device=dev), torch.cumsum(counts, 0)])
             p = params.index_select(0, sid)
-            return TraceAccel(bmin, cell, res, cell_start, sid, p[:, 8:12].contiguous(),
-                              torch.cat([p[:, 0:8], p[:, 12:13]], 1), alpha_min, means.shape[0])
+            return TraceAccel(bmin, cell, res, cell_start, sid, p[:, 8:12].T.contiguous(),
+                              torch.cat([p[:, 0:8], p[:, 12:13]], 1).T.contiguous(), alpha_min, means.shape[0])
+
+
+def _cols(mat: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Gather columns ``idx`` of a (K, M) structure-of-arrays tensor -> (K, len(idx))."""
+    return torch.gather(mat, 1, idx[None, :].expand(mat.shape[0], idx.numel()))
 
 
 def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: float, steps_per_round: int):
@@ -173,26 +179,27 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         ent = start.index_select(0, rec_of) + torch.arange(total, device=dev) \
             - (torch.cumsum(cnt, 0) - cnt).index_select(0, rec_of)
         ray_rec = torch.div(rec, steps_per_round, rounding_mode="floor")
-        recd = torch.cat([o.index_select(0, ray_rec), d.index_select(0, ray_rec),
-                          r_in.index_select(0, rec)[:, None], r_out.index_select(0, rec)[:, None]], 1)
+        # structure-of-arrays: gathers of (K, P) rows are ~2x faster on CPU than of (P, K) rows
+        recd = torch.cat([o.index_select(0, ray_rec).T, d.index_select(0, ray_rec).T,
+                          r_in.index_select(0, rec)[None], r_out.index_select(0, rec)[None]], 0)
         # phase A (4 floats per candidate): plane hit inside this cell's t-interval
-        qa = accel.plane.index_select(0, ent)
-        r = recd.index_select(0, rec_of)
-        ow = qa[:, 0] * r[:, 0] + qa[:, 1] * r[:, 1] + qa[:, 2] * r[:, 2] + qa[:, 3]
-        dw = qa[:, 0] * r[:, 3] + qa[:, 1] * r[:, 4] + qa[:, 2] * r[:, 5]
+        qa = _cols(accel.plane, ent)
+        r = _cols(recd, rec_of)
+        ow = qa[0] * r[0] + qa[1] * r[1] + qa[2] * r[2] + qa[3]
+        dw = qa[0] * r[3] + qa[1] * r[4] + qa[2] * r[5]
         t = -ow / dw  # dw = 0 gives inf/nan, which fails the interval test
-        sel = torch.nonzero((t >= r[:, 6]) & (t < r[:, 7])).squeeze(1)
+        sel = torch.nonzero((t >= r[6]) & (t < r[7])).squeeze(1)
         # phase B (9 floats): local coordinates and alpha of the in-cell hits
-        ent_s, t_s, r_s = ent.index_select(0, sel), t.index_select(0, sel), r.index_select(0, sel)
-        qb = accel.uvo.index_select(0, ent_s)
-        px, py, pz = r_s[:, 0] + t_s * r_s[:, 3], r_s[:, 1] + t_s * r_s[:, 4], r_s[:, 2] + t_s * r_s[:, 5]
-        pu = qb[:, 0] * px + qb[:, 1] * py + qb[:, 2] * pz + qb[:, 3]
-        pv = qb[:, 4] * px + qb[:, 5] * py + qb[:, 6] * pz + qb[:, 7]
-        alpha = torch.clamp_max(qb[:, 8] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+        ent_s, t_s, r_s = ent.index_select(0, sel), t.index_select(0, sel), _cols(r, sel)
+        qb = _cols(accel.uvo, ent_s)
+        px, py, pz = r_s[0] + t_s * r_s[3], r_s[1] + t_s * r_s[4], r_s[2] + t_s * r_s[5]
+        pu = qb[0] * px + qb[1] * py + qb[2] * pz + qb[3]
+        pv = qb[4] * px + qb[5] * py + qb[6] * pz + qb[7]
+        alpha = torch.clamp_max(qb[8] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
         hs = torch.nonzero(alpha >= accel.alpha_min).squeeze(1)
         hidx = sel.index_select(0, hs)
         h_rec, h_t = rec_of.index_select(0, hidx), t_s.index_select(0, hs)
-        rin, rout = r_s[:, 6].index_select(0, hs), r_s[:, 7].index_select(0, hs)
+        rin, rout = r_s[6].index_select(0, hs), r_s[7].index_select(0, hs)
         ray_local = ray_rec.index_select(0, h_rec)
         # order: record (ray-major, cells front to back), then t within the cell
         frac = (h_t - rin) / (rout - rin).clamp_min(1e-30)
