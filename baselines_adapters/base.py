@@ -23,6 +23,8 @@ class MethodAdapter(abc.ABC):
 
     name: str = ""
     version: str = "0"
+    # False for methods whose output does not depend on the seed: the grid then runs only the first seed
+    seed_dependent: bool = True
 
     def run(self, scene_dir: str | Path, train_light: str, test_lights: Sequence[str], seed: int,
             profile: str | None, out_dir: str | Path, runs_dir: str | Path | None = None) -> Path:

@@ -26,6 +26,7 @@ CONSTANT_ROUGHNESS = 0.5
 class LitAsAlbedo(MethodAdapter):
     name = "lit_as_albedo"
     version = "1"
+    seed_dependent = False
 
     def predict(self, scene_dir, train_light, test_lights, seed, profile, out_dir, runs_dir):
         for frame in layout.read_transforms(scene_dir, "test").frames:
@@ -40,6 +41,7 @@ class LitAsAlbedo(MethodAdapter):
 class MeanAlbedo(MethodAdapter):
     name = "mean_albedo"
     version = "1"
+    seed_dependent = False
 
     def predict(self, scene_dir, train_light, test_lights, seed, profile, out_dir, runs_dir):
         total, weight = np.zeros(3), 0.0

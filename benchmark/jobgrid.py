@@ -56,14 +56,21 @@ def render_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
 
 
 def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
-    """Every (method, scene, train light, seed) job with the configurations it scores."""
+    """Every (method, scene, train light, seed) job with the configurations it scores.
+
+    A method whose adapter says it is not seed-dependent runs with the first seed only (its std over
+    seeds would be zero by construction; the table's run count shows it).
+    """
+    from baselines_adapters.registry import get_adapter
+
     jobs = []
     trains = list(dict.fromkeys(c.train for c in config.configurations))
     for method in config.methods:
+        seeds = config.seeds if get_adapter(method).seed_dependent else config.seeds[:1]
         for scene in config.scenes:
             for train in trains:
                 confs = [c for c in config.configurations if c.train == train]
-                for seed in config.seeds:
+                for seed in seeds:
                     jobs.append({
                         "kind": "method", "method": method, "scene": scene, "train": train,
                         "tests": [c.test for c in confs], "seed": seed, "profile": paths.profile,

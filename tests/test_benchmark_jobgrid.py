@@ -124,3 +124,14 @@ def test_eval_cli_builds_tables_and_report(tmp_path):
     assert proc.returncode == 0 and "0 jobs run, 2 already finished" in proc.stdout
     bad = subprocess.run(cmd[:4] + ["--methods", "nope"], capture_output=True, text=True, cwd=REPO)
     assert bad.returncode == 2 and "unknown method 'nope'" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_seed_independent_methods_run_once(tmp_path):
+    from benchmark.jobgrid import method_jobs
+
+    config = load_benchmark_config(_grid(tmp_path, ["a", "b"], ["lit_as_albedo", "noisy_gt"], seeds=(0, 1, 2)))
+    jobs = method_jobs(config, _paths(tmp_path, tmp_path / "data"))
+    assert sorted((j["method"], j["scene"], j["seed"]) for j in jobs) == [
+        ("lit_as_albedo", "a", 0), ("lit_as_albedo", "b", 0),
+        ("noisy_gt", "a", 0), ("noisy_gt", "a", 1), ("noisy_gt", "a", 2),
+        ("noisy_gt", "b", 0), ("noisy_gt", "b", 1), ("noisy_gt", "b", 2)]
