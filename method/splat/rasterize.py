@@ -304,6 +304,34 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     return r_sid.index_select(0, r), r_y.index_select(0, r) * width + torch.cat(out_x), torch.cat(out_a)
 
 
+def _select_pairs(proj, opacities, cam: Camera, near: float, screen_offsets):
+    """No-grad selection of the composited (pixel, splat) pairs, sorted by pixel then front to back."""
+    n = opacities.shape[0]
+    H, W = cam.height, cam.width
+    dev = opacities.device
+    detached = {k: v.detach() for k, v in proj.items()}
+    shift = None if screen_offsets is None else screen_offsets.detach()
+    x0, x1, y0, y1, valid, radii, bounded, k2 = _screen_bounds(detached, opacities, cam, near, shift)
+    rows = _pack_rows(detached, opacities.detach())
+    if shift is not None:
+        rows = _shift_rows(rows, shift)
+    with torch.profiler.record_function("splat:candidates"):
+        sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near)
+    with torch.profiler.record_function("splat:sort_and_stop"):
+        rank = torch.empty(n, dtype=torch.long, device=dev)
+        rank[torch.argsort(detached["z"], stable=True)] = torch.arange(n, device=dev)
+        key = pix * n + rank.index_select(0, sid)  # unique: (pixel, depth rank)
+        order = torch.argsort(key.int() if H * W * n < 2 ** 31 else key)
+        sid, pix, alpha = sid.index_select(0, order), pix.index_select(0, order), alpha.index_select(0, order)
+        la = torch.log1p(-alpha).double()
+        log_after = Segments(pix, H * W).exclusive_cumsum(la) + la
+        live = torch.nonzero(log_after >= math.log(T_STOP)).squeeze(1)  # T after the pair >= 1e-4
+        sid, pix = sid.index_select(0, live), pix.index_select(0, live)
+        visible = torch.zeros(n, dtype=torch.bool, device=dev)
+        visible[sid] = True
+    return sid, pix, Segments(pix, H * W), visible, radii
+
+
 def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
               features: torch.Tensor, camera: Camera, background: torch.Tensor | None = None, *,
               near: float = 0.01, depth_ratio: float = 0.0, distortion_near: float = 0.2,
@@ -323,29 +351,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
 
     # ---- no-grad: bounds, candidates, exact alpha test, sort by pixel, stop at T < 1e-4 ----
     with torch.no_grad():
-        detached = {k: v.detach() for k, v in proj.items()}
-        shift = None if screen_offsets is None else screen_offsets.detach()
-        x0, x1, y0, y1, valid, radii, bounded, k2 = _screen_bounds(detached, opacities, cam, near, shift)
-        rows = _pack_rows(detached, opacities.detach())
-        if shift is not None:
-            rows = _shift_rows(rows, shift)
-        with torch.profiler.record_function("splat:candidates"):
-            sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near)
-        rf = torch.profiler.record_function("splat:sort_and_stop")
-        rf.__enter__()
-        rank = torch.empty(n, dtype=torch.long, device=dev)
-        rank[torch.argsort(detached["z"], stable=True)] = torch.arange(n, device=dev)
-        key = pix * n + rank.index_select(0, sid)
-        order = torch.argsort(key.int() if H * W * n < 2 ** 31 else key)
-        sid, pix, alpha = sid.index_select(0, order), pix.index_select(0, order), alpha.index_select(0, order)
-        segs = Segments(pix, H * W)
-        log_after = segs.exclusive_cumsum(torch.log1p(-alpha).double()) + torch.log1p(-alpha).double()
-        live = torch.nonzero(log_after >= math.log(T_STOP)).squeeze(1)
-        sid, pix = sid.index_select(0, live), pix.index_select(0, live)
-        segs = Segments(pix, H * W)
-        visible = torch.zeros(n, dtype=torch.bool, device=dev)
-        visible[sid] = True
-        rf.__exit__(None, None, None)
+        sid, pix, segs, visible, radii = _select_pairs(proj, opacities, cam, near, screen_offsets)
 
     # ---- with gradients, survivors only ----
     rows = _pack_rows(proj, opacities)
