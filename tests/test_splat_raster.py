@@ -37,6 +37,7 @@ SCENES = [
     dict(seed=0), dict(seed=1, n=64), dict(seed=2, channels=5),
     dict(seed=3, opacity=(0.9, 1.0), n=64),  # near-opaque stacks: exercises the T < 1e-4 stop and 0.99 clamp
     dict(seed=4, scale=(0.003, 0.02)),  # sub-pixel splats: exercises the low-pass fallback
+    dict(seed=5, n=24, scale=(0.3, 0.6), opacity=(0.995, 1.0)),  # large opaque splats: the 0.99 clamp
 ]
 
 
@@ -63,7 +64,7 @@ def test_stop_and_clamp_are_exercised(monkeypatch):
     assert rasterize(*params, cam).num_pairs > out.num_pairs + 20
 
 
-@pytest.mark.parametrize("seed", [0, 3, 4])
+@pytest.mark.parametrize("seed", [0, 3, 4, 5])
 def test_gradients_match_dense_reference(seed):
     cfg = dict(SCENES[seed])
     params, cam = random_scene(**cfg)
@@ -127,15 +128,16 @@ def _facing_splat(distance, sx, sy, size, opacity, angle=0.0):
     return params, cam
 
 
-def test_single_facing_splat_footprint_alpha_depth():
-    D, size, sigma_px, o = 4.0, 32, 3.0, 0.8
+@pytest.mark.parametrize("o", [0.8, 1.0])
+def test_single_facing_splat_footprint_alpha_depth(o):
+    D, size, sigma_px = 4.0, 32, 3.0
     cam = Camera.look_at((0.0, -D, 0.0), (0.0, 0.0, 0.0), size, size, dtype=F64)
     s = sigma_px * D / cam.focal  # world size whose 1-sigma footprint is sigma_px pixels
     params, cam = _facing_splat(D, s, s, size, o)
     out = rasterize(*params, cam)
     c = torch.arange(size, dtype=F64) + 0.5 - size / 2
     r2 = c[:, None] ** 2 + c[None, :] ** 2
-    expect = o * torch.exp(-0.5 * r2 / sigma_px ** 2)
+    expect = (o * torch.exp(-0.5 * r2 / sigma_px ** 2)).clamp_max(0.99)
     expect = torch.where(expect >= ALPHA_MIN, expect, torch.zeros_like(expect))
     torch.testing.assert_close(out.alpha, expect, atol=1e-9, rtol=0)
     covered = expect > 0
