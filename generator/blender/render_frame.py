@@ -40,6 +40,11 @@ class FrameRenderer:
         self.built = build_scene(self.scene, spec)
         bcycles.configure(self.scene, resolution=settings.resolution, spp=settings.spp, seed=settings.seed,
                           threads=threads, persistent_data=persistent_data)
+        if self.scene.cycles.use_denoising:
+            # OIDN's "Accurate" prefilter denoises the albedo and normal guide passes first: 3 OIDN runs per
+            # image. Measured at 128 px / 32 spp (spheres): lit pass 1.33 s -> 0.74 s with "Fast", vs 0.67 s
+            # without any denoising. The guide passes of these opaque, mostly diffuse scenes are clean.
+            self.scene.cycles.denoising_prefilter = "FAST"
         self.current_light: str | None = None
         self._set_light(settings.light_names[0])
         self.build_seconds = time.perf_counter() - t0
