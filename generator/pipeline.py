@@ -167,8 +167,9 @@ def _render_frames(run: SceneRun, pending: list[FrameJob], spec_hash: str, jobs:
     hdrs = {n: str(p) for n, p in run.hdr_paths.items()}
     init_args = (run.spec, spec_hash, run.settings, hdrs, worker_threads(n_workers))
     # Worker processes are exec'd while ASLR is off for this process's threads (generator/determinism.py).
-    with no_aslr_children(), make_progress(disable=not progress) as bar, ProcessPoolExecutor(
-            max_workers=n_workers, mp_context=ctx, initializer=render_worker.init_worker, initargs=init_args) as pool:
+    with no_aslr_children(), make_progress(disable=not progress) as bar:
+        pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx, initializer=render_worker.init_worker,
+                                   initargs=init_args)
         task = bar.add_task(f"{run.spec.name} ({run.profile.name})", total=len(pending), rate="")
         futures = {pool.submit(render_worker.render_job, j): j for j in pending}
         t0 = time.perf_counter()
@@ -189,9 +190,17 @@ def _render_frames(run: SceneRun, pending: list[FrameJob], spec_hash: str, jobs:
                     if on_rendered is not None:
                         on_rendered(futures[fut], record)
         except BaseException:
-            for fut in futures:
-                fut.cancel()
+            _abort(pool)  # Ctrl-C or a failure: frames in flight are dropped (no record) and redone on resume
             raise
+        pool.shutdown(wait=True)
+
+
+def _abort(pool: ProcessPoolExecutor) -> None:
+    """Stop now: cancel queued frames and terminate the workers instead of waiting for their frames."""
+    for proc in list(getattr(pool, "_processes", {}).values()):  # no public API to stop running tasks
+        if proc.is_alive():
+            proc.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _remove_stale_temporaries(variant: Path) -> None:

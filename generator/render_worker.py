@@ -7,6 +7,7 @@ which breaks ``import bpy`` there. Each worker imports bpy and builds the scene 
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 from typing import Any
@@ -18,6 +19,7 @@ _SPEC_HASH = ""
 def init_worker(spec, spec_hash: str, settings, hdr_paths: dict[str, str], threads: int,
                 persistent_data: bool = True) -> None:
     global _RENDERER, _SPEC_HASH
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (it stops the workers)
     _watch_parent()
     _silence_stdout()
     from .blender.render_frame import FrameRenderer
