@@ -36,8 +36,6 @@ class Protocol:
     def score_rgb(self, pred: np.ndarray, gt: np.ndarray, alpha: np.ndarray, lpips_net: str) -> dict[str, float]:
         """PSNR / SSIM / LPIPS of one RGB pair (display space, [0, 1]) under this protocol."""
         from benchmark import metrics
-        # the function, not benchmark.metrics.lpips: once the submodule is imported it shadows the wrapper
-        from benchmark.metrics.lpips import lpips
 
         a = alpha[..., :1].astype(np.float32)
         if self.masked_full_image:
@@ -51,7 +49,7 @@ class Protocol:
             p, g = pred * fg, gt * fg
             psnr = metrics.psnr(pred, gt, mask=fg, per_channel=self.psnr_per_channel)
             ssim = metrics.ssim(p, g, mask=fg)  # black background: no leak from outside
-        lp = lpips(p, g, net=lpips_net, input_range=self.lpips_input_range)
+        lp = metrics.lpips(p, g, net=lpips_net, input_range=self.lpips_input_range)
         return {"psnr": cap_psnr(psnr), "ssim": float(ssim), "lpips": float(lp)}
 
 
