@@ -40,8 +40,9 @@ def _measure_in_worker(spec, settings: RenderSettings, hdr_paths: dict[str, str]
     picks = [train[0]] + [train[(i + 1) * (len(train) - 1) // max(measure, 1)] for i in range(measure)]
     frames = []
     for j in picks:
+        c0 = time.process_time()  # CPU seconds of all threads: robust to other load on the machine
         rec = r.render(j, spec.spec_hash())
-        frames.append(rec["seconds"])
+        frames.append(rec["seconds"] | {"cpu": time.process_time() - c0})
     return {"build_s": build, "warmup": frames[0], "frames": frames[1:], "blender": r.blender_version}
 
 
@@ -50,8 +51,9 @@ def _summary(frames: list[dict]) -> dict[str, float]:
     post = [f["post"] for f in frames]
     lit = [v for f in frames for v in f["lit"].values()]
     total = [f["total"] for f in frames]
+    cpu = [f["cpu"] for f in frames]
     return {"gt_s": statistics.median(gt), "post_s": statistics.median(post), "lit_s_per_light": statistics.median(lit),
-            "frame_s": statistics.median(total), "n": len(frames)}
+            "frame_s": statistics.median(total), "frame_cpu_s": statistics.median(cpu), "n": len(frames)}
 
 
 def measure_frames(scene: str, profile: str, workdir: Path, *, measure: int = 2, lights: list[str] | None = None,
@@ -102,7 +104,8 @@ def machine() -> dict[str, Any]:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "cores": cores, "gpu": None, "python": platform.python_version(), "platform": platform.platform()}
+    return {"cpu": cpu, "cores": cores, "gpu": None, "python": platform.python_version(), "platform": platform.platform(),
+            "load_average_at_start": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 
 DATASET_SCENES = ("jumpingjacks", "standup", "hook", "mouse", "spheres")
@@ -130,6 +133,7 @@ def run_bench(out: Path, *, quick: bool = False, progress_print=print) -> dict[s
         j2 = measure_jobs("spheres", "small", work / "jobs", 6, 2, 2)
         doc["jobs"] = {"1": j1, "2": j2, "speedup": j1["wall_s"] / j2["wall_s"]}
         doc["projection"] = _project(doc, scenes)
+        doc["machine"]["load_average_at_end"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
         return doc
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -139,7 +143,9 @@ def _project(doc: dict[str, Any], scenes: list[str]) -> dict[str, Any]:
     """Hours for the five scenes: distinct frames x measured frame seconds (per scene at small; full scaled
     from the spheres full frame by each scene's small-profile ratio), for JOBS=1 and with the JOBS=2 gain."""
     small = {s["scene"]: s["frame_s"] for s in doc["scenes_small"]}
-    full_spheres = next(p for p in doc["per_frame"] if p["profile"] == "full")["frame_s"]
+    small_cpu = {s["scene"]: s["frame_cpu_s"] for s in doc["scenes_small"]}
+    full = next(p for p in doc["per_frame"] if p["profile"] == "full")
+    full_spheres = full["frame_s"]
     speedup = doc["jobs"]["speedup"]
     out: dict[str, Any] = {}
     for prof in ("small", "full"):
@@ -149,7 +155,11 @@ def _project(doc: dict[str, Any], scenes: list[str]) -> dict[str, Any]:
             n = renders_per_scene(s, prof)
             rows[s] = {"renders": n, "frame_s": per_frame, "hours_jobs1": n * per_frame / 3600.0}
         total = sum(r["hours_jobs1"] for r in rows.values())
-        out[prof] = {"scenes": rows, "hours_jobs1": total, "hours_jobs2": total / speedup}
+        cpu_h = sum(renders_per_scene(s, prof) * (small_cpu[s] if prof == "small"
+                                                  else full["frame_cpu_s"] * small_cpu[s] / small_cpu["spheres"])
+                    for s in scenes) / 3600.0
+        out[prof] = {"scenes": rows, "hours_jobs1": total, "hours_jobs2": total / speedup,
+                     "cpu_hours": cpu_h, "hours_idle_2core": cpu_h / 2.0}
     return out
 
 
@@ -158,23 +168,30 @@ def markdown(doc: dict[str, Any]) -> str:
     m = doc["machine"]
     lines = [f"Machine: {m['cpu']}, {m['cores']} cores, no GPU; Blender {doc['per_frame'][0]['blender']} "
              f"(Cycles CPU). Command: `{doc['command']}`.", "",
-             "| profile | px | spp (GT spp) | denoised | GT pass s | lit pass s (per light) | frame s (GT + 4 lights + files) | first frame s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             f"Load average {m.get('load_average_at_start')} at start, {m.get('load_average_at_end')} at end "
+             "(other jobs shared the machine: wall seconds are inflated; CPU seconds are not).", "",
+             "| profile | px | spp (GT spp) | denoised | GT pass s | lit pass s (per light) | frame s (GT + 4 lights + files) | frame CPU s | first frame s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for p in doc["per_frame"]:
         lines.append(f"| {p['profile']} | {p['resolution']} | {p['spp']} ({p['gt_spp']}) | {'yes' if p['denoised'] else 'no'} "
-                     f"| {p['gt_s']:.3f} | {p['lit_s_per_light']:.3f} | {p['frame_s']:.3f} | {p['warmup_frame_s']:.2f} |")
+                     f"| {p['gt_s']:.3f} | {p['lit_s_per_light']:.3f} | {p['frame_s']:.3f} | {p['frame_cpu_s']:.2f} "
+                     f"| {p['warmup_frame_s']:.2f} |")
     pd = doc["persistent_data"]
     j = doc["jobs"]
     lines += ["", f"Persistent data (small, spheres): frame {pd['off']['frame_s']:.3f} s off -> {pd['on']['frame_s']:.3f} s on "
               f"(x{pd['frame_speedup']:.2f}).",
               f"JOBS (small, spheres, {j['1']['renders']} distinct frames, start-up included): JOBS=1 {j['1']['wall_s']:.1f} s, "
               f"JOBS=2 {j['2']['wall_s']:.1f} s (x{j['speedup']:.2f}).", "",
-              "| scene | frame s at small | small: frames, hours (JOBS=1) | full: frames, hours (JOBS=1) |",
-              "| --- | --- | --- | --- |"]
+              "| scene | frame s at small | frame CPU s at small | small: frames, hours (JOBS=1) | full: frames, hours (JOBS=1) |",
+              "| --- | --- | --- | --- | --- |"]
     pr = doc["projection"]
+    cpu = {x["scene"]: x["frame_cpu_s"] for x in doc["scenes_small"]}
     for s, row in pr["small"]["scenes"].items():
         f = pr["full"]["scenes"][s]
-        lines.append(f"| {s} | {row['frame_s']:.2f} | {row['renders']}, {row['hours_jobs1']:.2f} | {f['renders']}, {f['hours_jobs1']:.1f} |")
-    lines += ["", f"All five scenes: small {pr['small']['hours_jobs1']:.2f} h (JOBS=1), {pr['small']['hours_jobs2']:.2f} h (JOBS=2); "
-              f"full {pr['full']['hours_jobs1']:.1f} h (JOBS=1), {pr['full']['hours_jobs2']:.1f} h (JOBS=2)."]
+        lines.append(f"| {s} | {row['frame_s']:.2f} | {cpu[s]:.2f} | {row['renders']}, {row['hours_jobs1']:.2f} "
+                     f"| {f['renders']}, {f['hours_jobs1']:.1f} |")
+    lines += ["", f"All five scenes (wall, as measured): small {pr['small']['hours_jobs1']:.2f} h (JOBS=1), "
+              f"{pr['small']['hours_jobs2']:.2f} h (JOBS=2); full {pr['full']['hours_jobs1']:.1f} h (JOBS=1), "
+              f"{pr['full']['hours_jobs2']:.1f} h (JOBS=2). From CPU seconds on an idle 2-core machine (CPU / 2): "
+              f"small {pr['small']['hours_idle_2core']:.2f} h, full {pr['full']['hours_idle_2core']:.1f} h."]
     return "\n".join(lines) + "\n"
