@@ -27,6 +27,8 @@ from .build import build_scene, reset_blender
 # Importance map for the world: the 32 x 16 maps need little resolution. "MANUAL" matters for speed:
 # Cycles' automatic mode rebuilds a large map on every env swap (about 0.7 s each, measured).
 WORLD_SAMPLE_MAP = 128
+
+
 class FrameRenderer:
     """One built scene, ready to render frames of any variant (they differ only in time and camera)."""
 
