@@ -199,9 +199,28 @@ class _NoCtx:
         pass
 
 
+class _GatherCols(torch.autograd.Function):
+    """Columns ``idx`` of a (K, N) tensor -> (K, len(idx)). Forward as K 1-D index_selects (3x faster
+    on CPU than one torch.gather), backward as one (K, N) scatter-add."""
+
+    @staticmethod
+    def forward(ctx, mat, idx):
+        ctx.save_for_backward(idx)
+        ctx.n = mat.shape[1]
+        return torch.stack([row.index_select(0, idx) for row in mat.unbind(0)], 0)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (idx,) = ctx.saved_tensors
+        out = grad.new_zeros((grad.shape[0], ctx.n))
+        return out.scatter_add_(1, idx[None, :].expand_as(grad), grad), None
+
+
 def _gather_cols(mat: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """Columns ``idx`` of a (K, N) tensor -> (K, len(idx)); its backward is a (K, N) scatter-add."""
-    return torch.gather(mat, 1, idx[None, :].expand(mat.shape[0], idx.numel()))
+    mat = mat.contiguous()
+    if torch.is_grad_enabled() and mat.requires_grad:
+        return _GatherCols.apply(mat, idx)
+    return torch.stack([row.index_select(0, idx) for row in mat.unbind(0)], 0)
 
 
 def _pack_rows(proj, opacities):

@@ -118,9 +118,10 @@ class TraceAccel:
                               torch.cat([p[:, 0:8], p[:, 12:13]], 1).T.contiguous(), alpha_min, means.shape[0])
 
 
-def _cols(mat: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """Gather columns ``idx`` of a (K, M) structure-of-arrays tensor -> (K, len(idx))."""
-    return torch.gather(mat, 1, idx[None, :].expand(mat.shape[0], idx.numel()))
+def _cols(mat, idx: torch.Tensor) -> list[torch.Tensor]:
+    """Columns ``idx`` of a (K, M) structure-of-arrays tensor (or list of K rows), as K 1-D tensors
+    (1-D index_select is ~3x faster on CPU than torch.gather over the rows)."""
+    return [row.index_select(0, idx) for row in (mat.unbind(0) if torch.is_tensor(mat) else mat)]
 
 
 def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: float, steps_per_round: int):
@@ -180,8 +181,8 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
             - (torch.cumsum(cnt, 0) - cnt).index_select(0, rec_of)
         ray_rec = torch.div(rec, steps_per_round, rounding_mode="floor")
         # structure-of-arrays: gathers of (K, P) rows are ~2x faster on CPU than of (P, K) rows
-        recd = torch.cat([o.index_select(0, ray_rec).T, d.index_select(0, ray_rec).T,
-                          r_in.index_select(0, rec)[None], r_out.index_select(0, rec)[None]], 0)
+        oT, dT = o.T.contiguous(), d.T.contiguous()
+        recd = _cols([oT[0], oT[1], oT[2], dT[0], dT[1], dT[2]], ray_rec) + _cols([r_in, r_out], rec)
         # phase A (4 floats per candidate): plane hit inside this cell's t-interval
         qa = _cols(accel.plane, ent)
         r = _cols(recd, rec_of)
