@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .rasterize import _gather_cols
 from .segments import Segments
 from .splats import check_splats, splat_frames
 
@@ -251,20 +252,23 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
         raise ValueError("accel was built for a different splat set or alpha_min; rebuild it")
     with torch.no_grad():
         ray, splat = _march(accel, origins.detach(), dirs.detach(), tmin, T_min, max_alpha, steps_per_round)
-    # differentiable recomputation on the composited hits only
-    local = _splat_local(means, quats, scales).index_select(0, splat)  # (P, 3, 4)
-    oo, dd = origins.index_select(0, ray), dirs.index_select(0, ray)
-    o_loc = (local[:, :, :3] @ oo[:, :, None]).squeeze(2) + local[:, :, 3]
-    d_loc = (local[:, :, :3] @ dd[:, :, None]).squeeze(2)
-    t = -o_loc[:, 2] / d_loc[:, 2]
-    pu = o_loc[:, 0] + t * d_loc[:, 0]
-    pv = o_loc[:, 1] + t * d_loc[:, 1]
-    alpha = torch.clamp_max(opacities.index_select(0, splat) * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+    # differentiable recomputation on the composited hits only (rays are treated as constants)
+    q = _gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T, splat)
+    oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()
+    ox, oy, oz = _cols(oT, ray)
+    dx, dy, dz = _cols(dT, ray)
+    ow = q[8] * ox + q[9] * oy + q[10] * oz + q[11]
+    dw = q[8] * dx + q[9] * dy + q[10] * dz
+    t = -ow / dw
+    px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+    pu = q[0] * px + q[1] * py + q[2] * pz + q[3]
+    pv = q[4] * px + q[5] * py + q[6] * pz + q[7]
+    alpha = torch.clamp_max(q[12] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
     segs = Segments(ray, R)
     la = torch.log1p(-alpha)
     trans_before = torch.exp(segs.exclusive_cumsum(la))
     transmittance = torch.exp(segs.sum(la))
     if features is None:
         return transmittance, None
-    out = segs.sum((alpha * trans_before)[:, None] * features.index_select(0, splat))
+    out = segs.sum(((alpha * trans_before)[None, :] * _gather_cols(features.T, splat)).T)
     return transmittance, out
