@@ -28,10 +28,12 @@ from .jobs import RenderSettings, gt_samples, plan_scene
 def _measure_in_worker(spec, settings: RenderSettings, hdr_paths: dict[str, str], scene_root: str, n_frames: int,
                        measure: int, threads: int, persistent: bool) -> dict[str, Any]:
     """Runs in a spawned process: build once, render 1 warm-up + ``measure`` frames, return timings."""
-    from .blender.render_frame import FrameRenderer
-    from .render_worker import _silence_stdout
+    from .render_worker import _silence_stdout, drop_blender_script_paths
 
     _silence_stdout()
+    drop_blender_script_paths()
+    from .blender.render_frame import FrameRenderer
+
     t0 = time.perf_counter()
     r = FrameRenderer(spec, settings, hdr_paths, threads=threads, persistent_data=persistent)
     build = time.perf_counter() - t0

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 _RENDERER = None
@@ -22,6 +24,7 @@ def init_worker(spec, spec_hash: str, settings, hdr_paths: dict[str, str], threa
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (it stops the workers)
     _watch_parent()
     _silence_stdout()
+    drop_blender_script_paths()
     from .blender.render_frame import FrameRenderer
 
     _RENDERER = FrameRenderer(spec, settings, hdr_paths, threads=threads, persistent_data=persistent_data)
@@ -32,6 +35,18 @@ def render_job(job) -> dict[str, Any]:
     if _RENDERER is None:
         raise RuntimeError("render worker used before init_worker")
     return _RENDERER.render(job, _SPEC_HASH)
+
+
+def drop_blender_script_paths() -> None:
+    """Spawned workers inherit the parent's sys.path. If the parent imported bpy (a test process may), that
+    path lists Blender's script folders, whose ``modules/bpy`` would shadow the real bpy extension module
+    here; drop them, and bpy puts them back when it is imported."""
+    def is_blender_scripts(p: str) -> bool:
+        parts = Path(p).parts
+        return "scripts" in parts and any(x in ("bpy", "blender") for x in parts[:parts.index("scripts")])
+
+    if "bpy" not in sys.modules:
+        sys.path[:] = [p for p in sys.path if not is_blender_scripts(p)]
 
 
 def _silence_stdout() -> None:
