@@ -106,7 +106,16 @@ class TraceAccel:
             nn = n.index_select(0, sid)
             dist = ((centre - means.index_select(0, sid)) * nn).sum(1).abs()
             reach = 0.5 * (nn.abs() * cell).sum(1) * 1.001 + pad
-            keep = torch.nonzero(dist <= reach).squeeze(1)
+            # and whose in-plane footprint (a disc of the cell's half-diagonal) meets the support ellipse:
+            # box-vs-circle test in the splat's (u, v) units, conservative
+            rel = centre - means.index_select(0, sid)
+            a_s, b_s = a.index_select(0, sid), b.index_select(0, sid)
+            la, lb = (a_s * a_s).sum(1), (b_s * b_s).sum(1)
+            rho = 0.5 * float(cell.norm()) * 1.001 + pad
+            du = ((rel * a_s).sum(1).abs() / la - rho / la.sqrt()).clamp_min(0.0)
+            dv = ((rel * b_s).sum(1).abs() / lb - rho / lb.sqrt()).clamp_min(0.0)
+            kk = k.index_select(0, sid)
+            keep = torch.nonzero((dist <= reach) & (du * du + dv * dv <= kk * kk)).squeeze(1)
             sid, cidx = sid.index_select(0, keep), cidx.index_select(0, keep)
             flat = (cidx[:, 0] * res[1] + cidx[:, 1]) * res[2] + cidx[:, 2]
             order = torch.argsort(flat, stable=True)
