@@ -65,18 +65,19 @@ def project_splats(means, quats, scales, opacities, camera: Camera):
     p = means @ rot.T + trans
     a = tu @ rot.T
     b = tv @ rot.T
-    f, cx, cy = camera.focal, camera.cx, camera.cy
-    # rows of M = K [a b p]: M0 = f (a_x, b_x, p_x) + cx (a_z, b_z, p_z), M1 likewise, M2 = (a_z, b_z, p_z)
+    f = camera.focal
+    # rows of M = K [a b p] with K = [[f, 0, 0], [0, f, 0], [0, 0, 1]] (centred pixels)
     m2 = torch.stack([a[:, 2], b[:, 2], p[:, 2]], -1)
-    m0 = f * torch.stack([a[:, 0], b[:, 0], p[:, 0]], -1) + cx * m2
-    m1 = f * torch.stack([a[:, 1], b[:, 1], p[:, 1]], -1) + cy * m2
+    # pixel coordinates are centred on the principal point (x - cx, y - cy): better conditioned in float32
+    m0 = f * torch.stack([a[:, 0], b[:, 0], p[:, 0]], -1)
+    m1 = f * torch.stack([a[:, 1], b[:, 1], p[:, 1]], -1)
     A = torch.linalg.cross(m0, m1)
     B = torch.linalg.cross(m1, m2)
     C = torch.linalg.cross(m2, m0)
     det = (m2 * A).sum(-1)
     z = p[:, 2]
     zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
-    centre = torch.stack([f * p[:, 0] / zs + cx, f * p[:, 1] / zs + cy], -1)
+    centre = torch.stack([f * p[:, 0] / zs, f * p[:, 1] / zs], -1)  # centred pixel coordinates
     view = camera.center - means
     facing = torch.where((nrm * view).sum(-1, keepdim=True) < 0, -nrm, nrm)
     return dict(A=A, B=B, C=C, det=det, centre=centre, z=z, normal=facing, m0=m0, m1=m1, m2=m2)
@@ -113,6 +114,7 @@ def _screen_bounds(proj, opacities, camera: Camera, near: float, shift=None):
     xmax = torch.maximum(mx + ex, ctr[:, 0] + rd)
     ymin = torch.minimum(my - ey, ctr[:, 1] - rd)
     ymax = torch.maximum(my + ey, ctr[:, 1] + rd)
+    xmin, xmax, ymin, ymax = xmin + camera.cx, xmax + camera.cx, ymin + camera.cy, ymax + camera.cy
     if shift is not None:
         xmin, xmax, ymin, ymax = xmin + shift[:, 0], xmax + shift[:, 0], ymin + shift[:, 1], ymax + shift[:, 1]
     big = float(max(camera.width, camera.height)) * 4.0 + 10.0
@@ -229,7 +231,8 @@ def _pack_rows(proj, opacities):
                       proj["z"][:, None], opacities[:, None]], 1)
 
 
-def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near: float, margin: float = 0.01):
+def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near: float, cx: float, cy: float,
+                     margin: float = 0.01):
     """No-grad: (splat, pixel) pairs with alpha >= 1/255 and hit depth >= near, unordered.
 
     Per splat and pixel row, the x-interval of the support is solved in closed form: the ellipse
@@ -249,7 +252,7 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     r_y = y0.index_select(0, r_sid) + torch.arange(n_rows, device=dev) - first.index_select(0, r_local)
     g = rows.index_select(0, r_sid)
     kk = k2.index_select(0, r_sid)
-    yc = r_y.to(dt) + 0.5
+    yc = r_y.to(dt) + (0.5 - cy)
     a0, a1, a2 = g[:, 0] + yc * g[:, 6], g[:, 1] + yc * g[:, 7], g[:, 2] + yc * g[:, 8]
     b0, b1, b2 = g[:, 3], g[:, 4], g[:, 5]
     qa = b0 * b0 + b1 * b1 - kk * b2 * b2
@@ -272,8 +275,8 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     full = ~bounded.index_select(0, r_sid) | (qa <= 0)
     bx0, bx1 = x0.index_select(0, r_sid), x1.index_select(0, r_sid)
     lim = float(width) + 2.0
-    j0 = torch.ceil((lo - 0.5 - margin).clamp(-lim, lim)).long()
-    j1 = torch.floor((hi - 0.5 + margin).clamp(-lim, lim)).long()
+    j0 = torch.ceil((lo + (cx - 0.5 - margin)).clamp(-lim, lim)).long()
+    j1 = torch.floor((hi + (cx - 0.5 + margin)).clamp(-lim, lim)).long()
     j0 = torch.where(full, bx0, torch.maximum(j0, bx0))
     j1 = torch.where(full, bx1, torch.minimum(j1, bx1))
     cnt = (j1 - j0 + 1).clamp_min(0)
@@ -297,7 +300,7 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
         q = rowp.index_select(0, rr)
         col = [q[:, k:k + 1] for k in range(11)]
         xi = j0.index_select(0, rr)[:, None] + ar[None, :]
-        x = xi.to(dt) + 0.5
+        x = xi.to(dt) + (0.5 - cx)
         c0 = col[0] + x * col[3]
         c1 = col[1] + x * col[4]
         c2 = col[2] + x * col[5]
@@ -335,7 +338,7 @@ def _select_pairs(proj, opacities, cam: Camera, near: float, screen_offsets):
     if shift is not None:
         rows = _shift_rows(rows, shift)
     with torch.profiler.record_function("splat:candidates"):
-        sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near)
+        sid, pix, alpha = _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, W, near, cam.cx, cam.cy)
     with torch.profiler.record_function("splat:sort_and_stop"):
         rank = torch.empty(n, dtype=torch.long, device=dev)
         rank[torch.argsort(detached["z"], stable=True)] = torch.arange(n, device=dev)
@@ -377,8 +380,8 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     if screen_offsets is not None:
         rows = _shift_rows(rows, screen_offsets)
     g = _gather_cols(rows.T, sid)
-    px = (pix % W).to(dt) + 0.5
-    py = torch.div(pix, W, rounding_mode="floor").to(dt) + 0.5
+    px = (pix % W).to(dt) + (0.5 - cam.cx)  # centred pixel coordinates
+    py = torch.div(pix, W, rounding_mode="floor").to(dt) + (0.5 - cam.cy)
     with torch.profiler.record_function("splat:pair_alpha"):
         alpha, depth = _pair_alpha(g, px, py)
     C = features.shape[1]
