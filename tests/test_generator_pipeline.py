@@ -26,16 +26,19 @@ SHARED_ENVMAPS = REPO.parent / "shared" / "data" / "envmaps"
 LIGHTS = list(lights.load_lights())  # the default light set, in lights.yaml order
 
 
-def _files(root: Path) -> dict[Path, Path]:
-    """Dataset files of a DATA/PROFILE tree, without bookkeeping (records, dataset.json hold timings)."""
-    return {p.relative_to(root): p for p in sorted(root.rglob("*"))
+def _files(root: Path, scene: str) -> dict[Path, Path]:
+    """Files of both variants of ``scene`` in a DATA/PROFILE tree (other tests may add files beside them),
+    without bookkeeping (records and dataset.json hold timings)."""
+    variants = [root / scene] + sorted(root.glob(f"{scene}_statictimestep*"))
+    return {p.relative_to(root): p for v in variants for p in sorted(v.rglob("*"))
             if p.is_file() and ".frames" not in p.parts and p.name != "dataset.json"}
 
 
-def assert_same_dataset(a: Path, b: Path) -> int:
+def assert_same_dataset(a: Path, b: Path, scene: str) -> int:
     """Byte-identical files, within the measured bound of Blender's run-to-run float noise
     (generator/determinism.py): normal .npz within 1e-5; a PNG may differ by one 8-bit step at rare pixels."""
-    fa, fb = _files(a), _files(b)
+    fa, fb = _files(a, scene), _files(b, scene)
+    assert len(fa) > 100
     assert sorted(fa) == sorted(fb)
     loose = 0  # files equal only within the bound
     for rel, pa in fa.items():
@@ -239,7 +242,7 @@ def test_deleted_frame_is_the_only_one_rendered_again(ci_dataset, tmp_path):
     assert rendered == [f"{scene.name}/train/r_0003"]
     d = np.abs(read_image(victim) - read_image(ci_dataset / victim.relative_to(scene)))
     assert d.max() <= 1.5 / 255 and (d > 0).mean() < 0.01  # rendered twice -> the same image
-    assert_same_dataset(data / "ci", ci_dataset.parent)
+    assert_same_dataset(data / "ci", ci_dataset.parent, ci_dataset.name)
     assert layout.is_complete(scene)
     # nothing left to do: a second run renders nothing
     rendered.clear()
@@ -271,4 +274,4 @@ def test_killed_run_resumes_to_identical_files(ci_dataset, tmp_path):
     rerun = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert layout.is_complete(scene)
-    assert_same_dataset(data / "ci", ci_dataset.parent)
+    assert_same_dataset(data / "ci", ci_dataset.parent, ci_dataset.name)
