@@ -131,7 +131,7 @@ def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_si
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
         pairs = out.num_pairs
-    return statistics.median(times), pairs, statistics.median(cpu)
+    return statistics.median(times), pairs, statistics.median(cpu), min(times)
 
 
 def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup: int = 1,
@@ -163,7 +163,8 @@ def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup:
             build.append(t1 - t0)
             query.append(t2 - t1)
             cpu.append(time.process_time() - c0)
-    return dict(build=statistics.median(build), query=statistics.median(query), cpu_seconds=statistics.median(cpu),
+    return dict(build=statistics.median(build), query=statistics.median(query), query_min=min(query),
+                cpu_seconds=statistics.median(cpu),
                 mean_visibility=float(trans.mean()), cells=list(accel.res), entries=int(accel.entries.numel()))
 
 
@@ -207,8 +208,9 @@ def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
     scaling = {"vs_splats_at_100px": [], "vs_pixels_at_20k_fixed_scene": []}
     for kind, size, n in track(jobs, description="raster"):
         reps = max(1, repeats if size * size * max(n, 20_000) <= 200 * 200 * 50_000 else repeats // 2)
-        t, pairs, cpu = time_raster(n, size, reps, device, ref_size=100 if kind == "pixels" else None)
-        row = {"pixels": size * size, "size": size, "splats": n, "seconds": t, "pairs": pairs, "cpu_seconds": cpu}
+        t, pairs, cpu, tmin = time_raster(n, size, reps, device, ref_size=100 if kind == "pixels" else None)
+        row = {"pixels": size * size, "size": size, "splats": n, "seconds": t, "seconds_min": tmin, "pairs": pairs,
+               "cpu_seconds": cpu}
         if kind == "key":
             res[f"raster_fwdbwd_{size}px_{n // 1000}k"] = t
             res.setdefault("raster_detail", {})[f"{size}px_{n // 1000}k"] = row
@@ -252,10 +254,14 @@ def _chart(res: dict, path: Path, label: str) -> None:
     sc = res["raster_scaling"]
     fig, axes = plt.subplots(1, 3 if "memory" in res else 2, figsize=(13, 3.8))
     a = sc["vs_splats_at_100px"]
-    axes[0].loglog([r["splats"] for r in a], [r["seconds"] for r in a], "o-")
+    axes[0].loglog([r["splats"] for r in a], [r["seconds"] for r in a], "o-", label="median")
+    axes[0].loglog([r["splats"] for r in a], [r["seconds_min"] for r in a], "v:", label="min")
+    axes[0].legend(fontsize=7)
     axes[0].set(xlabel="splats (100 x 100 px)", ylabel="fwd + bwd seconds", title="time vs splat count")
     b = sc["vs_pixels_at_20k_fixed_scene"]
-    axes[1].loglog([r["pixels"] for r in b], [r["seconds"] for r in b], "o-")
+    axes[1].loglog([r["pixels"] for r in b], [r["seconds"] for r in b], "o-", label="median")
+    axes[1].loglog([r["pixels"] for r in b], [r["seconds_min"] for r in b], "v:", label="min")
+    axes[1].legend(fontsize=7)
     axes[1].set(xlabel="pixels (20k splats, same scene)", ylabel="fwd + bwd seconds", title="time vs pixel count")
     for ax, rows in ((axes[0], a), (axes[1], b)):
         for r in rows:
