@@ -17,7 +17,12 @@ import sys
 import time
 from pathlib import Path
 
-import torch
+# OpenMP threads spin while waiting by default; on a shared, loaded machine (CI, other jobs) that made
+# 2-thread runs ~4x slower than 1 thread in our measurements. Passive waiting is set unless the user
+# chose a policy; it must happen before torch loads its OpenMP runtime. Recorded in the result.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import torch  # noqa: E402
 
 from lumibench.errors import UserError, run_cli
 
@@ -308,6 +313,7 @@ def main(argv=None) -> int:
     result = {"device": _device_name(dev), "threads": torch.get_num_threads()}
     result.update(run_all(dev, args.repeats, args.quick, out_path))
     result.update(device=_device_name(dev), threads=torch.get_num_threads(), torch=torch.__version__,
+                  omp_wait_policy=os.environ.get("OMP_WAIT_POLICY"),
                   python=platform.python_version(), command=" ".join(["python -m method.splat.bench"] + list(argv or sys.argv[1:])))
     from lumibench.io import atomic_write_json
 
