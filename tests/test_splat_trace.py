@@ -197,3 +197,13 @@ def test_cpu_cuda_agree():
     T2, F2 = trace(*[p.cuda() for p in params], o.cuda(), d.cuda(), 0.0)
     torch.testing.assert_close(T2.cpu(), T1, atol=1e-9, rtol=0)
     torch.testing.assert_close(F2.cpu(), F1, atol=1e-9, rtol=0)
+
+
+def test_empty_and_transparent_splat_sets():
+    o, d = random_rays(r=8, seed=12)
+    z = torch.zeros(0, dtype=F64)
+    T, F = trace(z.reshape(0, 3), z.reshape(0, 4), z.reshape(0, 2), z, z.reshape(0, 2), o, d)
+    assert torch.equal(T, torch.ones(8, dtype=F64)) and F.shape == (8, 2)
+    params = random_scene(n=5, seed=12, opacity=(0.001, 0.005))  # all below alpha_min: nothing registered
+    T, F = trace(*params, o, d)
+    assert torch.equal(T, torch.ones(8, dtype=F64)) and float(F.abs().max()) == 0.0

@@ -1,22 +1,8 @@
 """Differentiable 2D Gaussian rasterizer and ray tracer, pure PyTorch (CPU and CUDA).
 
-    from method.splat import Camera, rasterize, trace, TraceAccel
+    from method.splat.camera import Camera          # pinhole camera from camera_angle_x + OpenGL c2w
+    from method.splat.rasterize import rasterize    # -> RasterOutput (features, alpha, normal, depths, ...)
+    from method.splat.trace import TraceAccel, trace  # grid once per splat set; transmittance + features
 
-Public names are imported lazily so that importing the package does not load torch.
+(Nothing is re-exported here: the function names equal their module names.)
 """
-from __future__ import annotations
-
-_EXPORTS = {
-    "Camera": "camera", "rasterize": "rasterize", "RasterOutput": "rasterize", "normal_from_depth": "rasterize",
-    "trace": "trace", "TraceAccel": "trace", "quat_to_rotmat": "splats",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        import importlib
-
-        return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

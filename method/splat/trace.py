@@ -71,7 +71,8 @@ class TraceAccel:
                 z = torch.zeros(1, dtype=torch.long, device=dev)
                 return TraceAccel(torch.zeros(3, dtype=dt, device=dev), torch.ones(3, dtype=dt, device=dev),
                                   (1, 1, 1), torch.zeros(2, dtype=torch.long, device=dev), z[:0],
-                                  params[:0, 8:12].T.contiguous(), params[:0, 8:].T.contiguous(), alpha_min,
+                                  params[:0, 8:12].T.contiguous(),
+                                  torch.cat([params[:0, 0:8], params[:0, 12:13]], 1).T.contiguous(), alpha_min,
                                   means.shape[0])
             bmin = (means - half)[live].min(0).values
             bmax = (means + half)[live].max(0).values
