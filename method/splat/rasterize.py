@@ -250,11 +250,12 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     first = torch.cumsum(h, 0) - h
     r_sid = idx.index_select(0, r_local)
     r_y = y0.index_select(0, r_sid) + torch.arange(n_rows, device=dev) - first.index_select(0, r_local)
-    g = rows.index_select(0, r_sid)
+    # per-row splat parameters as 1-D gathers (structure of arrays: ~3x faster than 2-D row gathers)
+    g = [col.index_select(0, r_sid) for col in rows.T.contiguous().unbind(0)]
     kk = k2.index_select(0, r_sid)
     yc = r_y.to(dt) + (0.5 - cy)
-    a0, a1, a2 = g[:, 0] + yc * g[:, 6], g[:, 1] + yc * g[:, 7], g[:, 2] + yc * g[:, 8]
-    b0, b1, b2 = g[:, 3], g[:, 4], g[:, 5]
+    a0, a1, a2 = g[0] + yc * g[6], g[1] + yc * g[7], g[2] + yc * g[8]
+    b0, b1, b2 = g[3], g[4], g[5]
     qa = b0 * b0 + b1 * b1 - kk * b2 * b2
     qb = a0 * b0 + a1 * b1 - kk * a2 * b2
     qc = a0 * a0 + a1 * a1 - kk * a2 * a2
@@ -265,12 +266,12 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     inf = torch.full_like(qa, float("inf"))
     lo = torch.where(ell, (-qb - sq) / qa_s, inf)
     hi = torch.where(ell, (-qb + sq) / qa_s, -inf)
-    dy = yc - g[:, 11]
+    dy = yc - g[11]
     dd = 0.5 * kk - dy * dy
     disk = dd >= 0
     sd = torch.sqrt(dd.clamp_min(0.0))
-    lo = torch.where(disk, torch.minimum(lo, g[:, 10] - sd), lo)
-    hi = torch.where(disk, torch.maximum(hi, g[:, 10] + sd), hi)
+    lo = torch.where(disk, torch.minimum(lo, g[10] - sd), lo)
+    hi = torch.where(disk, torch.maximum(hi, g[10] + sd), hi)
     # unbounded footprints (support crossing the camera plane) and degenerate quadratics: whole box row
     full = ~bounded.index_select(0, r_sid) | (qa <= 0)
     bx0, bx1 = x0.index_select(0, r_sid), x1.index_select(0, r_sid)
@@ -284,7 +285,7 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     # broadcasting: no per-pixel gathers of splat parameters
     # per-pixel exact test, rows grouped by span length (powers of two) and evaluated densely with
     # broadcasting: one gather of row parameters per group instead of per-pixel gathers
-    rowp = torch.stack([a0, a1, a2, b0, b1, b2, g[:, 10], dy * dy, g[:, 9], g[:, 12], g[:, 13]], 1)
+    rowp = [a0, a1, a2, b0, b1, b2, g[10], dy * dy, g[9], g[12], g[13]]
     # class = exact span length up to 12 (no padding), then powers of two
     pow2 = torch.pow(2, torch.ceil(torch.log2(cnt.clamp_min(1).double()))).long()
     lw = torch.where(cnt <= 12, cnt, pow2)
@@ -297,8 +298,7 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
         rr = torch.nonzero(lw == lev).squeeze(1)
         S = lev
         ar = torch.arange(S, device=dev)
-        q = rowp.index_select(0, rr)
-        col = [q[:, k:k + 1] for k in range(11)]
+        col = [v.index_select(0, rr)[:, None] for v in rowp]
         xi = j0.index_select(0, rr)[:, None] + ar[None, :]
         x = xi.to(dt) + (0.5 - cx)
         c0 = col[0] + x * col[3]
