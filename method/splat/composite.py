@@ -40,22 +40,27 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, g_feat, g_depth, g_dist, g_logt, _g_trans):
         alpha, depth, attrs, trans, w, m, totals = ctx.saved_tensors
         segs = ctx.segs
-        dt = alpha.dtype
+        zero = torch.zeros(segs.num, dtype=alpha.dtype, device=alpha.device)
 
-        def per_pair(g):
-            return segs.gather(g if g is not None else torch.zeros(segs.num, dtype=dt, device=alpha.device))
+        def per_pair(g):  # 1-D gathers: ~3x faster than gathering (S, K) rows on CPU
+            return segs.gather(g if g is not None else zero)
 
-        gf = segs.gather(g_feat) if g_feat is not None else torch.zeros_like(attrs)
         gd, gdist, glogt = per_pair(g_depth), per_pair(g_dist), per_pair(g_logt)
-        tot = segs.gather(totals)
-        W, M1, M2 = tot[:, 0], tot[:, 1], tot[:, 2]
-        g_w = (gf * attrs).sum(1) + gd * depth + gdist * (m * m * W - 2.0 * m * M1 + M2)
+        W, M1, M2 = (per_pair(totals[:, j].contiguous()) for j in range(3))
+        g_w = gd * depth + gdist * (m * m * W - 2.0 * m * M1 + M2)
+        k = attrs.shape[1]
+        if g_feat is not None:
+            gf = [per_pair(g_feat[:, j].contiguous()) for j in range(k)]
+            for j in range(k):
+                g_w = g_w + gf[j] * attrs[:, j]
+            g_attrs = torch.stack([w * gf[j] for j in range(k)], 1)
+        else:
+            g_attrs = torch.zeros_like(attrs)
         q = g_w * w
         suffix = segs.gather(segs.sum(q)) - segs.exclusive_cumsum(q) - q  # sum over k > i
         g_alpha = g_w * trans - (suffix + glogt) / (1.0 - alpha)
         g_m = gdist * 2.0 * w * (m * W - M1)
         g_z = gd * w + g_m * (ctx.m_scale * ctx.m_near) / (depth * depth)
-        g_attrs = w[:, None] * gf
         return g_alpha, g_z, g_attrs, None, None, None
 
 
