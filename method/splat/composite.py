@@ -27,14 +27,15 @@ class _Composite(torch.autograd.Function):
         wmm = wm * m
         pre_w, pre_m1, pre_m2 = segs.exclusive_cumsum(w), segs.exclusive_cumsum(wm), segs.exclusive_cumsum(wmm)
         dist = w * (m * m * pre_w + pre_m2 - 2.0 * m * pre_m1)
-        per_pair = torch.cat([w[:, None] * attrs, torch.stack([w * depth, dist, la, w, wm, wmm], 1)], 1)
-        acc = segs.sum(per_pair)
         k = attrs.shape[1]
-        totals = acc[:, k + 3:k + 6]
+        # per-pixel sums of 1-D columns (no (P, K + 6) concatenation)
+        feat = torch.stack([segs.sum(w * attrs[:, j]) for j in range(k)], 1)
+        d_sum, dist_sum, log_t, W, M1, M2 = (segs.sum(v) for v in (w * depth, dist, la, w, wm, wmm))
+        totals = torch.stack([W, M1, M2], 1)
         ctx.segs, ctx.m_scale, ctx.m_near = segs, m_scale, m_near
         ctx.save_for_backward(alpha, depth, attrs, trans, w, m, totals)
         ctx.mark_non_differentiable(trans)
-        return acc[:, :k], acc[:, k], acc[:, k + 1], acc[:, k + 2], trans
+        return feat, d_sum, dist_sum, log_t, trans
 
     @staticmethod
     def backward(ctx, g_feat, g_depth, g_dist, g_logt, _g_trans):
