@@ -207,3 +207,12 @@ def test_empty_and_transparent_splat_sets():
     params = random_scene(n=5, seed=12, opacity=(0.001, 0.005))  # all below alpha_min: nothing registered
     T, F = trace(*params, o, d)
     assert torch.equal(T, torch.ones(8, dtype=F64)) and float(F.abs().max()) == 0.0
+
+
+def test_ray_chunks_give_the_same_result():
+    params = random_scene(seed=13)
+    o, d = random_rays(seed=13)
+    a = trace(*params, o, d, 0.0)
+    b = trace(*params, o, d, 0.0, ray_chunk=37)
+    torch.testing.assert_close(a[0], b[0], atol=0, rtol=0)
+    torch.testing.assert_close(a[1], b[1], atol=1e-12, rtol=0)

@@ -242,12 +242,14 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
 def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
           features: torch.Tensor | None, origins: torch.Tensor, dirs: torch.Tensor,
           t_min: torch.Tensor | float = 0.0, *, alpha_min: float = 0.01, T_min: float = 0.03,
-          max_alpha: float = 0.99, accel: TraceAccel | None = None, steps_per_round: int = 8):
+          max_alpha: float = 0.99, accel: TraceAccel | None = None, steps_per_round: int = 8,
+          ray_chunk: int = 1 << 17):
     """Trace R rays; returns (transmittance (R,), composited features (R, C) or None).
 
     ``dirs`` need not be unit length (t is in units of |d|). Pass ``accel`` (TraceAccel.build) to reuse
     the grid across calls; it must have been built from the same splats and opacities with the same
-    ``alpha_min``. Differentiable w.r.t. opacities, features and the splat geometry.
+    ``alpha_min``. Differentiable w.r.t. opacities, features and the splat geometry (not the rays).
+    ``ray_chunk`` rays are traversed at a time (peak memory of the traversal scales with it).
     """
     check_splats(means, quats, scales, opacities, features)
     if origins.dim() != 2 or origins.shape[1] != 3 or dirs.shape != origins.shape:
@@ -260,8 +262,12 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
         accel = TraceAccel.build(means, quats, scales, opacities, alpha_min=alpha_min)
     elif accel.num_splats != means.shape[0] or abs(accel.alpha_min - alpha_min) > 0:
         raise ValueError("accel was built for a different splat set or alpha_min; rebuild it")
-    with torch.no_grad():
-        ray, splat = _march(accel, origins.detach(), dirs.detach(), tmin, T_min, max_alpha, steps_per_round)
+    with torch.no_grad():  # rays in chunks bound the candidate buffers (memory linear in the chunk)
+        parts = [_march(accel, origins[i:i + ray_chunk].detach(), dirs[i:i + ray_chunk].detach(),
+                        tmin[i:i + ray_chunk], T_min, max_alpha, steps_per_round)
+                 for i in range(0, R, ray_chunk)]
+        ray = torch.cat([p[0] + i * ray_chunk for i, p in enumerate(parts)]) if parts else tmin.new_zeros(0).long()
+        splat = torch.cat([p[1] for p in parts]) if parts else ray
     # differentiable recomputation on the composited hits only (rays are treated as constants)
     q = _gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T, splat)
     oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()
