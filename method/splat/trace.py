@@ -147,37 +147,46 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
     t_enter = torch.maximum(torch.minimum(ta, tb).max(1).values, t_min)
     t_exit = torch.maximum(ta, tb).min(1).values
     active = torch.nonzero(t_enter < t_exit).squeeze(1)
-    o, d, iv = origins.index_select(0, active), dirs.index_select(0, active), inv.index_select(0, active)
+    # per-ray state as 1-D tensors per axis (structure of arrays: cheap vector steps on CPU)
+    o = [v.index_select(0, active) for v in origins.T.contiguous().unbind(0)]
+    d = [v.index_select(0, active) for v in dirs.T.contiguous().unbind(0)]
+    iv = [v.index_select(0, active) for v in inv.T.contiguous().unbind(0)]
     t_cur, t_end = t_enter.index_select(0, active), t_exit.index_select(0, active)
-    t_lo = t_min.index_select(0, active)
-    p = o + t_cur[:, None] * d
-    ci = torch.minimum(torch.floor((p - lo) / cell).long().clamp_min(0), res - 1)
-    step = torch.where(d > 0, 1, -1)
-    nxt = lo + (ci + (d > 0).long()).to(dt) * cell
-    t_max = torch.where(d.abs() > 1e-30, (nxt - o) * iv, torch.full_like(d, float("inf")))
-    t_delta = (cell * iv).abs()
+    ci, step, t_max, t_delta = [], [], [], []
+    for j in range(3):
+        p_j = o[j] + t_cur * d[j]
+        c_j = torch.floor((p_j - lo[j]) / cell[j]).long().clamp(0, accel.res[j] - 1)
+        pos = d[j] > 0
+        nxt = lo[j] + (c_j + pos.long()).to(dt) * cell[j]
+        ci.append(c_j)
+        step.append(torch.where(pos, 1, -1))
+        t_max.append(torch.where(d[j].abs() > 1e-30, (nxt - o[j]) * iv[j], torch.full_like(p_j, float("inf"))))
+        t_delta.append((cell[j] * iv[j]).abs())
     log_t = torch.zeros(active.numel(), dtype=torch.float64, device=dev)
     ray_id = active
     log_tmin = math.log(T_min)
     out_ray, out_splat = [], []
-    mult = torch.tensor([accel.res[1] * accel.res[2], accel.res[2], 1], device=dev)
+    m0, m1 = accel.res[1] * accel.res[2], accel.res[2]
     while ray_id.numel():
         # -- up to K cells per ray: (ray, cell, t_in, t_out) records, ray-major
         recs_c, recs_in, recs_out, recs_ok = [], [], [], []
         alive = torch.ones(ray_id.numel(), dtype=torch.bool, device=dev)
         for _ in range(steps_per_round):
-            t_next = t_max.min(1)
-            t_out = torch.minimum(t_next.values, t_end)
-            recs_c.append((ci * mult).sum(1))
+            sx = (t_max[0] <= t_max[1]) & (t_max[0] <= t_max[2])  # ties: x before y before z
+            sy = ~sx & (t_max[1] <= t_max[2])
+            sz = ~(sx | sy)
+            t_next = torch.where(sx, t_max[0], torch.where(sy, t_max[1], t_max[2]))
+            t_out = torch.minimum(t_next, t_end)
+            recs_c.append(ci[0] * m0 + ci[1] * m1 + ci[2])
             recs_in.append(t_cur)
             recs_out.append(t_out)
-            recs_ok.append(alive.clone())
-            axis = t_next.indices
-            onehot = torch.nn.functional.one_hot(axis, 3).bool()
-            ci = torch.where(onehot, ci + step, ci)
+            recs_ok.append(alive)
+            for j, sj in enumerate((sx, sy, sz)):
+                ci[j] = torch.where(sj, ci[j] + step[j], ci[j])
+                t_max[j] = torch.where(sj, t_max[j] + t_delta[j], t_max[j])
             t_cur = t_out
-            t_max = torch.where(onehot, t_max + t_delta, t_max)
-            alive = alive & (t_next.values < t_end) & ((ci >= 0) & (ci < res)).all(1)
+            alive = alive & (t_next < t_end) & (ci[0] >= 0) & (ci[0] < accel.res[0]) & (ci[1] >= 0) \
+                & (ci[1] < accel.res[1]) & (ci[2] >= 0) & (ci[2] < accel.res[2])
         cells = torch.stack(recs_c, 1).reshape(-1)
         r_in = torch.stack(recs_in, 1).reshape(-1)
         r_out = torch.stack(recs_out, 1).reshape(-1)
@@ -192,8 +201,7 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
             - (torch.cumsum(cnt, 0) - cnt).index_select(0, rec_of)
         ray_rec = torch.div(rec, steps_per_round, rounding_mode="floor")
         # structure-of-arrays: gathers of (K, P) rows are ~2x faster on CPU than of (P, K) rows
-        oT, dT = o.T.contiguous(), d.T.contiguous()
-        recd = _cols([oT[0], oT[1], oT[2], dT[0], dT[1], dT[2]], ray_rec) + _cols([r_in, r_out], rec)
+        recd = _cols(o + d, ray_rec) + _cols([r_in, r_out], rec)
         # phase A (4 floats per candidate): plane hit inside this cell's t-interval
         qa = _cols(accel.plane, ent)
         r = _cols(recd, rec_of)
@@ -227,9 +235,8 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         out_splat.append(accel.entries.index_select(0, ent.index_select(0, hidx.index_select(0, inc))))
         log_t = log_t + torch.zeros_like(log_t).index_add(0, h_ray.index_select(0, inc), la.index_select(0, inc))
         keep = torch.nonzero(alive & (log_t >= log_tmin)).squeeze(1)
-        ray_id, o, d, iv = ray_id.index_select(0, keep), o.index_select(0, keep), d.index_select(0, keep), iv.index_select(0, keep)
-        ci, t_max, t_cur, t_end = ci.index_select(0, keep), t_max.index_select(0, keep), t_cur.index_select(0, keep), t_end.index_select(0, keep)
-        t_delta, step, log_t, t_lo = t_delta.index_select(0, keep), step.index_select(0, keep), log_t.index_select(0, keep), t_lo.index_select(0, keep)
+        ray_id, t_cur, t_end, log_t = (v.index_select(0, keep) for v in (ray_id, t_cur, t_end, log_t))
+        o, d, ci, step, t_max, t_delta = ([v.index_select(0, keep) for v in lst] for lst in (o, d, ci, step, t_max, t_delta))
     if not out_ray:
         e = torch.zeros(0, dtype=torch.long, device=dev)
         return e, e
