@@ -12,10 +12,11 @@ or hit depth < near are skipped; a pixel stops at the splat that would take its 
 (that splat is not composited, as in 3DGS/2DGS).
 
 Scaling: (1) without gradients, per-splat screen bounds of the support (the ellipse where alpha can reach
-1/255, union the fallback disc), culling; (2) candidate (pixel, splat) pairs from the bounds, exact alpha
-test, sort by pixel (stable, so depth order is kept), transmittance by segmented log-sum, cut at the stop;
-(3) with gradients, only the surviving pairs are recomputed and composited with segmented scans.
-Memory is linear in the number of pairs.
+1/255, union the fallback disc) and culling; (2) per splat and pixel row, the closed-form x-span of that
+support, the exact alpha test on the pixels of the spans, a sort by (pixel, depth rank), transmittance by a
+segmented log-sum, and the cut at the stop; (3) with gradients, only the surviving pairs are recomputed
+(intersection and compositing each an autograd.Function with an analytic backward). Memory is linear in
+the number of pairs. Pixel coordinates are centred on the principal point inside (float32 conditioning).
 """
 from __future__ import annotations
 
