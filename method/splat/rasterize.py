@@ -282,25 +282,28 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     j0 = torch.where(full, bx0, torch.maximum(j0, bx0))
     j1 = torch.where(full, bx1, torch.minimum(j1, bx1))
     cnt = (j1 - j0 + 1).clamp_min(0)
-    # per-pixel exact test, rows grouped by span length (powers of two) and evaluated densely with
-    # broadcasting: no per-pixel gathers of splat parameters
-    # per-pixel exact test, rows grouped by span length (powers of two) and evaluated densely with
-    # broadcasting: one gather of row parameters per group instead of per-pixel gathers
-    rowp = [a0, a1, a2, b0, b1, b2, g[10], dy * dy, g[9], g[12], g[13]]
-    # class = exact span length up to 12 (no padding), then powers of two
+    # per-pixel exact test: rows grouped by span length (exact up to 12, then powers of two) and each
+    # group evaluated densely with broadcasting; rows are permuted once so that groups are contiguous
+    # slices (no per-pixel and no per-group gathers of splat parameters)
     pow2 = torch.pow(2, torch.ceil(torch.log2(cnt.clamp_min(1).double()))).long()
     lw = torch.where(cnt <= 12, cnt, pow2)
-    lw = torch.where(cnt > 0, lw, torch.full_like(lw, -1))
+    perm = torch.argsort(lw)
+    lw_sorted = lw.index_select(0, perm)
+    levels, sizes = torch.unique_consecutive(lw_sorted, return_counts=True)
+    rowp = [v.index_select(0, perm) for v in (a0, a1, a2, b0, b1, b2, g[10], dy * dy, g[9], g[12], g[13])]
+    j0p, cntp = j0.index_select(0, perm), cnt.index_select(0, perm)
     out_r, out_x, out_a = [], [], []
     tiny = 1e-30 if dt == torch.float64 else 1e-20
-    for lev in torch.unique(lw).tolist():
-        if lev < 0:
+    lo_i = 0
+    for lev, size in zip(levels.tolist(), sizes.tolist()):
+        sl = slice(lo_i, lo_i + size)
+        lo_i += size
+        if lev <= 0:  # empty spans
             continue
-        rr = torch.nonzero(lw == lev).squeeze(1)
         S = lev
         ar = torch.arange(S, device=dev)
-        col = [v.index_select(0, rr)[:, None] for v in rowp]
-        xi = j0.index_select(0, rr)[:, None] + ar[None, :]
+        col = [v[sl, None] for v in rowp]
+        xi = j0p[sl, None] + ar[None, :]
         x = xi.to(dt) + (0.5 - cx)
         c0 = col[0] + x * col[3]
         c1 = col[1] + x * col[4]
@@ -315,9 +318,9 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
         depth = torch.where(use3, col[8] * inv, col[9])
         ok = (alpha >= ALPHA_MIN) & (depth >= near)
         if S > 12:
-            ok &= ar[None, :] < cnt.index_select(0, rr)[:, None]
+            ok &= ar[None, :] < cntp[sl, None]
         flat = torch.nonzero(ok.reshape(-1)).squeeze(1)
-        out_r.append(rr.index_select(0, torch.div(flat, S, rounding_mode="floor")))
+        out_r.append(perm[sl].index_select(0, torch.div(flat, S, rounding_mode="floor")))
         out_x.append(xi.reshape(-1).index_select(0, flat))
         out_a.append(alpha.reshape(-1).index_select(0, flat))
     if not out_r:
