@@ -216,3 +216,20 @@ def test_ray_chunks_give_the_same_result():
     b = trace(*params, o, d, 0.0, ray_chunk=37)
     torch.testing.assert_close(a[0], b[0], atol=0, rtol=0)
     torch.testing.assert_close(a[1], b[1], atol=1e-12, rtol=0)
+
+
+def test_small_splats_in_fine_cells_equal_brute_force():
+    """Splats much smaller than a cell, each registered in one or two cells, and every ray aimed at one of
+    them: a DDA step into a wrong cell, or a hit claimed by the wrong cell, loses or doubles hits."""
+    params = random_scene(n=400, seed=14, scale=(0.001, 0.002), opacity=(0.5, 1.0))
+    g = torch.Generator().manual_seed(14)
+    target = params[0][torch.randint(0, 400, (3000,), generator=g)]
+    o = (torch.rand(3000, 3, generator=g, dtype=F64) - 0.5) * 1.4
+    d = target + 0.001 * torch.randn(3000, 3, generator=g, dtype=F64) - o
+    d = d / d.norm(dim=1, keepdim=True)
+    accel = TraceAccel.build(*params[:4], cell_size=0.02)
+    T1, F1 = trace(*params, o, d, 0.0, accel=accel)
+    T2, F2 = trace_dense(*params, o, d, 0.0)
+    assert float((T2 < 1).float().mean()) > 0.5  # most rays hit something
+    torch.testing.assert_close(T1, T2, atol=1e-9, rtol=0)
+    torch.testing.assert_close(F1, F2, atol=1e-9, rtol=0)
