@@ -41,5 +41,5 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
             grid_paths.append(image_grid(r, out / "grids" / name))
     report = write_report(out / "report.html", groups, meta, results, chart_paths, grid_paths,
                           {k: v for k, v in written.items()}, title)
-    return {**written, **{f"{k}.png": v for k, v in chart_paths.items()}, "report.html": report,
+    return {**written, **{v.name: v for v in chart_paths.values()}, "report.html": report,
             **{f"grids/{p.name}": p for p in grid_paths}}

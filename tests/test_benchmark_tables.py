@@ -96,7 +96,8 @@ def test_charts_and_report_written(tmp_path):
         write_result(p, r)
         paths.append(p)
     out = build_outputs(paths, tmp_path / "out", grids=False)
-    for name in ("table.md", "table.tex", "table.csv", "pareto.png", "gaussians.png", "stability.png", "report.html"):
+    for name in ("table.md", "table.tex", "table.csv", "pareto.png", "quality_vs_gaussians.png", "stability.png", "report.html"):
+        assert out[name].name == name
         assert out[name].is_file() and out[name].stat().st_size > 0, name
     assert out["pareto.png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     html = out["report.html"].read_text()
