@@ -13,16 +13,15 @@ RUNS ?= runs
 RESULTS ?= results
 JOBS ?= 1
 SCENES ?=
-SCENE ?=
-LIGHT ?= city
-METHOD ?= lumimotion
+LIGHTS ?=
 METHODS ?=
 EXECUTOR ?= local
 PYTEST_ARGS ?=
 
 STAMP := $(VENV)/.lumibench-setup
 
-.PHONY: setup dataset train eval demo test bench clean-venv
+.PHONY: setup dataset eval demo test bench clean-venv
+# `make train` arrives with the method (stage 1 and stage 2 of LumiMotion).
 
 setup: $(STAMP)
 
@@ -37,11 +36,7 @@ $(STAMP): pyproject.toml Makefile
 	@echo "setup: $(VENV) ready"
 
 dataset: setup
-	$(PY) -m generator dataset --profile $(PROFILE) --data $(DATA) --jobs $(JOBS) $(if $(SCENES),--scenes $(SCENES),)
-
-train: setup
-	@test -n "$(SCENE)" || { echo "make train: set SCENE=<name> (see configs/scenes/)" >&2; exit 2; }
-	$(PY) -m method train --scene $(SCENE) --light $(LIGHT) --profile $(PROFILE) --method $(METHOD) --data $(DATA) --runs $(RUNS)
+	$(PY) -m generator dataset --profile $(PROFILE) --data $(DATA) --jobs $(JOBS) $(if $(SCENES),--scenes $(SCENES),) $(if $(LIGHTS),--lights $(LIGHTS),)
 
 eval: setup
 	$(PY) -m benchmark eval --profile $(PROFILE) --data $(DATA) --runs $(RUNS) --results $(RESULTS) --executor $(EXECUTOR) --jobs $(JOBS) $(if $(METHODS),--methods $(METHODS),)
