@@ -45,14 +45,17 @@ class TraceAccel:
     res: tuple[int, int, int]
     cell_start: torch.Tensor  # (n_cells + 1,) CSR offsets into entries
     entries: torch.Tensor  # (E,) splat ids sorted by cell
-    plane: torch.Tensor  # (4, E) per-entry copy of the splat's plane (unit normal, offset), column-major
-    uvo: torch.Tensor  # (9, E) per-entry copy of the maps to u, v (4 each) and the opacity
+    block: int  # W: each cell's entries are padded to whole blocks of W slots
+    blk_start: torch.Tensor  # (n_cells + 1,) CSR offsets into blocks
+    blk_plane: torch.Tensor  # (n_blocks, 4 * W) per block: unit normals x, y, z and offsets, W slots each
+    slot_uvo: torch.Tensor  # (n_blocks * W, 9) per slot: the maps to u, v (4 each) and the opacity
+    slot_splat: torch.Tensor  # (n_blocks * W,) splat id per slot (-1: padding, whose plane is all zero)
     alpha_min: float
     num_splats: int
 
     @staticmethod
     def build(means, quats, scales, opacities, alpha_min: float = 0.01, cell_size: float | None = None,
-              max_cells: int = 1 << 21) -> "TraceAccel":
+              max_cells: int = 1 << 21, block: int = 8) -> "TraceAccel":
         """Register every splat whose opacity can reach ``alpha_min`` in the cells its support overlaps.
 
         ``cell_size`` defaults to half the median support radius (measured: finer cells multiply the
@@ -70,9 +73,9 @@ class TraceAccel:
             if live.numel() == 0:
                 z = torch.zeros(1, dtype=torch.long, device=dev)
                 return TraceAccel(torch.zeros(3, dtype=dt, device=dev), torch.ones(3, dtype=dt, device=dev),
-                                  (1, 1, 1), torch.zeros(2, dtype=torch.long, device=dev), z[:0],
-                                  params[:0, 8:12].T.contiguous(),
-                                  torch.cat([params[:0, 0:8], params[:0, 12:13]], 1).T.contiguous(), alpha_min,
+                                  (1, 1, 1), torch.zeros(2, dtype=torch.long, device=dev), z[:0], block,
+                                  torch.zeros(2, dtype=torch.long, device=dev),
+                                  params.new_zeros(0, 4 * block), params.new_zeros(0, 9), z[:0], alpha_min,
                                   means.shape[0])
             bmin = (means - half)[live].min(0).values
             bmax = (means + half)[live].max(0).values
@@ -124,9 +127,24 @@ class TraceAccel:
             n_cells = res[0] * res[1] * res[2]
             counts = torch.bincount(flat, minlength=n_cells)
             cell_start = torch.cat([torch.zeros(1, dtype=torch.long, device=dev), torch.cumsum(counts, 0)])
+            # blocks: W slots per block, a cell's entries padded to whole blocks; a query gathers one
+            # contiguous row of 4 W plane values per (ray, block) instead of 4 scattered values per entry
+            W = int(block)
+            nblk = torch.div(counts + (W - 1), W, rounding_mode="floor")
+            blk_start = torch.cat([torch.zeros(1, dtype=torch.long, device=dev), torch.cumsum(nblk, 0)])
+            n_blk = int(blk_start[-1])
+            slot = blk_start.index_select(0, flat) * W + torch.arange(flat.numel(), device=dev) \
+                - cell_start.index_select(0, flat)
             p = params.index_select(0, sid)
-            return TraceAccel(bmin, cell, res, cell_start, sid, p[:, 8:12].T.contiguous(),
-                              torch.cat([p[:, 0:8], p[:, 12:13]], 1).T.contiguous(), alpha_min, means.shape[0])
+            plane = params.new_zeros(4, n_blk * W)  # padding: zero plane, t = 0 / 0 fails every test
+            plane[:, slot] = p[:, 8:12].T
+            blk_plane = plane.view(4, n_blk, W).transpose(0, 1).reshape(n_blk, 4 * W)
+            slot_uvo = params.new_zeros(n_blk * W, 9)
+            slot_uvo[slot] = torch.cat([p[:, 0:8], p[:, 12:13]], 1)
+            slot_splat = torch.full((n_blk * W,), -1, dtype=torch.long, device=dev)
+            slot_splat[slot] = sid
+            return TraceAccel(bmin, cell, res, cell_start, sid, W, blk_start, blk_plane, slot_uvo, slot_splat,
+                              alpha_min, means.shape[0])
 
 
 def _cols(mat, idx: torch.Tensor) -> list[torch.Tensor]:
@@ -135,7 +153,80 @@ def _cols(mat, idx: torch.Tensor) -> list[torch.Tensor]:
     return [row.index_select(0, idx) for row in (mat.unbind(0) if torch.is_tensor(mat) else mat)]
 
 
-def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: float, steps_per_round: int):
+# Candidates are tested in chunks of about this many (ray, entry) pairs: every temporary then stays small
+# enough for the allocator to reuse (fresh multi-megabyte tensors page-fault on every op: measured ~4x
+# slower for the same arithmetic) and close to the cache.
+CANDIDATE_CHUNK = 1 << 18
+
+
+def _candidates(accel: TraceAccel, b0, nb, recd, max_alpha: float, chunk: int):
+    """Test every slot of each record's cell blocks: (record, slot) pairs whose plane hit lies inside the
+    record's t-interval and whose alpha reaches alpha_min. ``b0``, ``nb``: first block and block count per
+    record; ``recd``: per record o (3), d (3), t_in, t_out. Returns (record, slot, alpha, fraction of the
+    interval at the hit) or None."""
+    dev = b0.device
+    n = b0.numel()
+    if n == 0:
+        return None
+    W = accel.block
+    cum = torch.cumsum(nb, 0)
+    total = int(cum[-1])
+    shift = b0 - (cum - nb)  # block = block index in the round + shift of its record
+    per = max(1, chunk // W)  # blocks per chunk
+    # record boundaries of the chunks (whole records per chunk) and their block offsets
+    marks = torch.arange(per, total, per, device=dev) if total > per else cum[:0]
+    cuts = torch.searchsorted(cum, marks, right=True)
+    bounds = torch.unique_consecutive(torch.cat([cuts.new_zeros(1), cuts, cuts.new_full((1,), n)]))
+    offs = torch.cat([cum.new_zeros(1), cum]).index_select(0, bounds).tolist()
+    bounds = bounds.tolist()
+    ox, oy, oz, dx, dy, dz, r_in, r_out = recd
+    n_in, n_out = -r_in, -r_out
+    out = []
+    for a, b, base, end in zip(bounds[:-1], bounds[1:], offs[:-1], offs[1:]):
+        if end == base:
+            continue
+        brec = torch.repeat_interleave(torch.arange(a, b, device=dev), nb[a:b], output_size=end - base)
+        blk = torch.arange(base, end, device=dev) + shift.index_select(0, brec)
+        # phase A (one row of 4 W floats per block): plane hit inside this cell's t-interval;
+        # t = -ow / dw, so t >= t_in <=> ow / dw <= -t_in (negation is exact)
+        g = accel.blk_plane.index_select(0, blk).view(-1, 4, W)
+        r = [v.index_select(0, brec)[:, None] for v in (ox, oy, oz, dx, dy, dz, n_in, n_out)]
+        # (addcmul: fused multiply-adds, ~2x fewer passes; the same pair gives the same q in every block)
+        ow = torch.addcmul(torch.addcmul(torch.addcmul(g[:, 3], g[:, 0], r[0]), g[:, 1], r[1]), g[:, 2], r[2])
+        dw = torch.addcmul(torch.addcmul(g[:, 0] * r[3], g[:, 1], r[4]), g[:, 2], r[5])
+        q = ow.div_(dw)  # dw = 0 gives inf/nan, which fails the interval test
+        sel = torch.nonzero(((q <= r[6]) & (q > r[7])).view(-1)).squeeze(1)
+        # phase B (9 floats per hit): local coordinates and alpha of the in-cell hits
+        bsel = torch.div(sel, W, rounding_mode="floor")
+        slot = blk.index_select(0, bsel) * W + (sel - bsel * W)
+        rec_s = brec.index_select(0, bsel)
+        o_s = _cols([ox, oy, oz, dx, dy, dz], rec_s)
+        # t again with unfused operations, exactly as trace() recomputes it: the alpha_min and T_min
+        # decisions below then agree bit for bit with the composited values
+        at = bsel * (3 * W) + sel  # slot's normal x in the gathered rows; y, z and offset follow W apart
+        gf = g.reshape(-1)
+        qa = [gf.index_select(0, at + j * W) for j in range(4)]
+        t_s = -(qa[0] * o_s[0] + qa[1] * o_s[1] + qa[2] * o_s[2] + qa[3]) / (qa[0] * o_s[3] + qa[1] * o_s[4]
+                                                                              + qa[2] * o_s[5])
+        qb = accel.slot_uvo.index_select(0, slot).T
+        # (the same operations as the differentiable recomputation in trace(), so that a hit at the
+        # alpha_min threshold is decided as there)
+        px, py, pz = o_s[0] + t_s * o_s[3], o_s[1] + t_s * o_s[4], o_s[2] + t_s * o_s[5]
+        pu = qb[0] * px + qb[1] * py + qb[2] * pz + qb[3]
+        pv = qb[4] * px + qb[5] * py + qb[6] * pz + qb[7]
+        alpha = torch.clamp_max(qb[8] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+        hs = torch.nonzero(alpha >= accel.alpha_min).squeeze(1)
+        rec_h = rec_s.index_select(0, hs)
+        rin, rout = r_in.index_select(0, rec_h), r_out.index_select(0, rec_h)
+        frac = (t_s.index_select(0, hs) - rin) / (rout - rin).clamp_min(1e-30)
+        out.append((rec_h, slot.index_select(0, hs), alpha.index_select(0, hs), frac))
+    if not out:
+        return None
+    return tuple(torch.cat(c) for c in zip(*out)) if len(out) > 1 else out[0]
+
+
+def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: float, steps_per_round: int,
+           chunk: int = CANDIDATE_CHUNK):
     """No-grad traversal: returns the composited hits (ray, splat) in front-to-back order per ray."""
     dev, dt = origins.device, origins.dtype
     R = origins.shape[0]
@@ -188,51 +279,34 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
             alive = alive & (t_next < t_end) & (ci[0] >= 0) & (ci[0] < accel.res[0]) & (ci[1] >= 0) \
                 & (ci[1] < accel.res[1]) & (ci[2] >= 0) & (ci[2] < accel.res[2])
         cells = torch.stack(recs_c, 1).reshape(-1)
-        r_in = torch.stack(recs_in, 1).reshape(-1)
-        r_out = torch.stack(recs_out, 1).reshape(-1)
         ok = torch.stack(recs_ok, 1).reshape(-1)
-        rec = torch.nonzero(ok).squeeze(1)
-        cells = cells.index_select(0, rec).clamp(0, accel.cell_start.numel() - 2)
-        start = accel.cell_start.index_select(0, cells)
-        cnt = accel.cell_start.index_select(0, cells + 1) - start
-        total = int(cnt.sum())
-        rec_of = torch.repeat_interleave(torch.arange(rec.numel(), device=dev), cnt, output_size=total)
-        ent = start.index_select(0, rec_of) + torch.arange(total, device=dev) \
-            - (torch.cumsum(cnt, 0) - cnt).index_select(0, rec_of)
+        cells = cells.clamp(0, accel.blk_start.numel() - 2)
+        b0 = accel.blk_start.index_select(0, cells)
+        nb = accel.blk_start.index_select(0, cells + 1) - b0
+        rec = torch.nonzero(ok & (nb > 0)).squeeze(1)  # records of cells with entries only
+        b0, nb = b0.index_select(0, rec), nb.index_select(0, rec)
         ray_rec = torch.div(rec, steps_per_round, rounding_mode="floor")
         # structure-of-arrays: gathers of (K, P) rows are ~2x faster on CPU than of (P, K) rows
-        recd = _cols(o + d, ray_rec) + _cols([r_in, r_out], rec)
-        # phase A (4 floats per candidate): plane hit inside this cell's t-interval
-        qa = _cols(accel.plane, ent)
-        r = _cols(recd, rec_of)
-        ow = qa[0] * r[0] + qa[1] * r[1] + qa[2] * r[2] + qa[3]
-        dw = qa[0] * r[3] + qa[1] * r[4] + qa[2] * r[5]
-        t = -ow / dw  # dw = 0 gives inf/nan, which fails the interval test
-        sel = torch.nonzero((t >= r[6]) & (t < r[7])).squeeze(1)
-        # phase B (9 floats): local coordinates and alpha of the in-cell hits
-        ent_s, t_s, r_s = ent.index_select(0, sel), t.index_select(0, sel), _cols(r, sel)
-        qb = _cols(accel.uvo, ent_s)
-        px, py, pz = r_s[0] + t_s * r_s[3], r_s[1] + t_s * r_s[4], r_s[2] + t_s * r_s[5]
-        pu = qb[0] * px + qb[1] * py + qb[2] * pz + qb[3]
-        pv = qb[4] * px + qb[5] * py + qb[6] * pz + qb[7]
-        alpha = torch.clamp_max(qb[8] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
-        hs = torch.nonzero(alpha >= accel.alpha_min).squeeze(1)
-        hidx = sel.index_select(0, hs)
-        h_rec, h_t = rec_of.index_select(0, hidx), t_s.index_select(0, hs)
-        rin, rout = r_s[6].index_select(0, hs), r_s[7].index_select(0, hs)
+        recd = _cols(o + d, ray_rec) + _cols([torch.stack(recs_in, 1).reshape(-1),
+                                               torch.stack(recs_out, 1).reshape(-1)], rec)
+        hits = _candidates(accel, b0, nb, recd, max_alpha, chunk)
+        if hits is None:
+            h_rec = ray_rec.new_zeros(0)
+            h_ent, h_alpha, frac = h_rec, recd[0][:0], recd[0][:0]
+        else:
+            h_rec, h_ent, h_alpha, frac = hits
         ray_local = ray_rec.index_select(0, h_rec)
         # order: record (ray-major, cells front to back), then t within the cell
-        frac = (h_t - rin) / (rout - rin).clamp_min(1e-30)
-        order = torch.argsort(h_rec.double() + frac.double().clamp(0.0, 0.999999))
-        hidx = hidx.index_select(0, order)
+        order = torch.argsort(h_rec.double() + frac.double().clamp(0.0, 0.999999), stable=True)
+        h_ent = h_ent.index_select(0, order)
         h_ray = ray_local.index_select(0, order)
-        h_alpha = alpha.index_select(0, hs).index_select(0, order)
+        h_alpha = h_alpha.index_select(0, order)
         segs = Segments(h_ray, ray_id.numel())
         la = torch.log1p(-h_alpha).double()
         before = log_t.index_select(0, h_ray) + segs.exclusive_cumsum(la)
         inc = torch.nonzero(before >= log_tmin).squeeze(1)
         out_ray.append(ray_id.index_select(0, h_ray.index_select(0, inc)))
-        out_splat.append(accel.entries.index_select(0, ent.index_select(0, hidx.index_select(0, inc))))
+        out_splat.append(accel.slot_splat.index_select(0, h_ent.index_select(0, inc)))
         log_t = log_t + torch.zeros_like(log_t).index_add(0, h_ray.index_select(0, inc), la.index_select(0, inc))
         keep = torch.nonzero(alive & (log_t >= log_tmin)).squeeze(1)
         ray_id, t_cur, t_end, log_t = (v.index_select(0, keep) for v in (ray_id, t_cur, t_end, log_t))
