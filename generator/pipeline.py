@@ -22,6 +22,7 @@ from typing import Any, Callable
 from lumibench import layout
 from lumibench.errors import UserError
 from lumibench.io import atomic_path, atomic_write_json, sha256_file
+from lumibench.machine import usable_cores
 from lumibench.profiles import load_profile
 from lumibench.progress import make_progress
 
@@ -122,8 +123,7 @@ def prepare(scene: str, profile: str, data: Path, lights: list[str] | None = Non
 
 def worker_threads(jobs: int) -> int:
     """Cycles threads per worker: the cores shared out, so JOBS workers do not oversubscribe."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cores // max(1, jobs))
+    return max(1, usable_cores() // max(1, jobs))
 
 
 def render_scene(scene: str, profile: str, data: Path, jobs: int = 1, lights: list[str] | None = None,

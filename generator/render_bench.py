@@ -18,6 +18,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from lumibench.machine import cpu_name, usable_cores
 from lumibench.profiles import load_profile
 
 from . import pipeline, spec as spec_mod
@@ -97,17 +98,8 @@ def renders_per_scene(scene: str, profile: str) -> int:
 
 
 def machine() -> dict[str, Any]:
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": cores, "gpu": None, "python": platform.python_version(), "platform": platform.platform(),
-            "load_average_at_start": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+    return {"cpu": cpu_name(), "cores": usable_cores(), "gpu": None, "python": platform.python_version(),
+            "platform": platform.platform(), "load_average_at_start": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 
 DATASET_SCENES = ("jumpingjacks", "standup", "hook", "mouse", "spheres")

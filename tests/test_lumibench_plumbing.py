@@ -1,6 +1,4 @@
 """Shared plumbing: YAML validation messages, atomic writes, image reading errors, profiles."""
-import subprocess
-import sys
 
 import numpy as np
 import pytest

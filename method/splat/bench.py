@@ -24,6 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
+from lumibench.machine import cpu_name
 from lumibench.errors import UserError, run_cli
 
 from .camera import Camera
@@ -327,15 +328,7 @@ def main(argv=None) -> int:
 def _device_name(dev: str) -> str:
     if dev.startswith("cuda"):
         return torch.cuda.get_device_name(torch.device(dev))
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"cpu ({cpu}, {os.cpu_count()} logical cores)"
+    return f"cpu ({cpu_name()}, {os.cpu_count()} logical cores)"
 
 
 if __name__ == "__main__":

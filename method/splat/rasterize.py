@@ -368,7 +368,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     with requires_grad to read the screen-space positional gradient (densification statistic).
     ``depth_ratio`` blends expected (0) and median (1) depth for ``normal_from_depth``.
     """
-    n = check_splats(means, quats, scales, opacities, features)
+    check_splats(means, quats, scales, opacities, features)
     H, W = camera.height, camera.width
     dev, dt = means.device, means.dtype
     cam = camera if (camera.device == dev and camera.dtype == dt) else camera.to(dev, dt)
