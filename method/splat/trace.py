@@ -48,7 +48,7 @@ class TraceAccel:
     block: int  # W: each cell's entries are padded to whole blocks of W slots
     blk_start: torch.Tensor  # (n_cells + 1,) CSR offsets into blocks
     blk_plane: torch.Tensor  # (n_blocks, 4 * W) per block: unit normals x, y, z and offsets, W slots each
-    slot_uvo: torch.Tensor  # (n_blocks * W, 9) per slot: the maps to u, v (4 each) and the opacity
+    splat_rows: torch.Tensor  # (N, 13) per splat: maps to u, v, w (4 each; w: the plane) and the opacity
     slot_splat: torch.Tensor  # (n_blocks * W,) splat id per slot (-1: padding, whose plane is all zero)
     alpha_min: float
     num_splats: int
@@ -75,7 +75,7 @@ class TraceAccel:
                 return TraceAccel(torch.zeros(3, dtype=dt, device=dev), torch.ones(3, dtype=dt, device=dev),
                                   (1, 1, 1), torch.zeros(2, dtype=torch.long, device=dev), z[:0], block,
                                   torch.zeros(2, dtype=torch.long, device=dev),
-                                  params.new_zeros(0, 4 * block), params.new_zeros(0, 9), z[:0], alpha_min,
+                                  params.new_zeros(0, 4 * block), params.contiguous(), z[:0], alpha_min,
                                   means.shape[0])
             bmin = (means - half)[live].min(0).values
             bmax = (means + half)[live].max(0).values
@@ -139,11 +139,9 @@ class TraceAccel:
             plane = params.new_zeros(4, n_blk * W)  # padding: zero plane, t = 0 / 0 fails every test
             plane[:, slot] = p[:, 8:12].T
             blk_plane = plane.view(4, n_blk, W).transpose(0, 1).reshape(n_blk, 4 * W)
-            slot_uvo = params.new_zeros(n_blk * W, 9)
-            slot_uvo[slot] = torch.cat([p[:, 0:8], p[:, 12:13]], 1)
             slot_splat = torch.full((n_blk * W,), -1, dtype=torch.long, device=dev)
             slot_splat[slot] = sid
-            return TraceAccel(bmin, cell, res, cell_start, sid, W, blk_start, blk_plane, slot_uvo, slot_splat,
+            return TraceAccel(bmin, cell, res, cell_start, sid, W, blk_start, blk_plane, params.contiguous(), slot_splat,
                               alpha_min, means.shape[0])
 
 
@@ -201,25 +199,21 @@ def _candidates(accel: TraceAccel, b0, nb, recd, max_alpha: float, chunk: int):
         slot = blk.index_select(0, bsel) * W + (sel - bsel * W)
         rec_s = brec.index_select(0, bsel)
         o_s = _cols([ox, oy, oz, dx, dy, dz], rec_s)
-        # t again with unfused operations, exactly as trace() recomputes it: the alpha_min and T_min
-        # decisions below then agree bit for bit with the composited values
-        at = bsel * (3 * W) + sel  # slot's normal x in the gathered rows; y, z and offset follow W apart
-        gf = g.reshape(-1)
-        qa = [gf.index_select(0, at + j * W) for j in range(4)]
-        t_s = -(qa[0] * o_s[0] + qa[1] * o_s[1] + qa[2] * o_s[2] + qa[3]) / (qa[0] * o_s[3] + qa[1] * o_s[4]
-                                                                              + qa[2] * o_s[5])
-        qb = accel.slot_uvo.index_select(0, slot).T
-        # (the same operations as the differentiable recomputation in trace(), so that a hit at the
-        # alpha_min threshold is decided as there)
+        sid = accel.slot_splat.index_select(0, slot)
+        qb = accel.splat_rows.index_select(0, sid).T  # one row per hit from a small, cache-resident table
+        # t again with unfused operations and then u, v, alpha exactly as trace() recomputes them: the
+        # alpha_min and T_min decisions here agree bit for bit with the composited values
+        t_s = -(qb[8] * o_s[0] + qb[9] * o_s[1] + qb[10] * o_s[2] + qb[11]) / (qb[8] * o_s[3] + qb[9] * o_s[4]
+                                                                                + qb[10] * o_s[5])
         px, py, pz = o_s[0] + t_s * o_s[3], o_s[1] + t_s * o_s[4], o_s[2] + t_s * o_s[5]
         pu = qb[0] * px + qb[1] * py + qb[2] * pz + qb[3]
         pv = qb[4] * px + qb[5] * py + qb[6] * pz + qb[7]
-        alpha = torch.clamp_max(qb[8] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+        alpha = torch.clamp_max(qb[12] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
         hs = torch.nonzero(alpha >= accel.alpha_min).squeeze(1)
         rec_h = rec_s.index_select(0, hs)
         rin, rout = r_in.index_select(0, rec_h), r_out.index_select(0, rec_h)
         frac = (t_s.index_select(0, hs) - rin) / (rout - rin).clamp_min(1e-30)
-        out.append((rec_h, slot.index_select(0, hs), alpha.index_select(0, hs), frac))
+        out.append((rec_h, sid.index_select(0, hs), alpha.index_select(0, hs), frac))
     if not out:
         return None
     return tuple(torch.cat(c) for c in zip(*out)) if len(out) > 1 else out[0]
@@ -256,7 +250,8 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
     log_t = torch.zeros(active.numel(), dtype=torch.float64, device=dev)
     ray_id = active
     log_tmin = math.log(T_min)
-    out_ray, out_splat = [], []
+    out_ray, out_splat, out_pos = [], [], []
+    n_done = torch.zeros(R, dtype=torch.long, device=dev)  # hits kept so far per ray
     m0, m1 = accel.res[1] * accel.res[2], accel.res[2]
     while ray_id.numel():
         # -- up to K cells per ray: (ray, cell, t_in, t_out) records, ray-major
@@ -305,8 +300,13 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         la = torch.log1p(-h_alpha).double()
         before = log_t.index_select(0, h_ray) + segs.exclusive_cumsum(la)
         inc = torch.nonzero(before >= log_tmin).squeeze(1)
-        out_ray.append(ray_id.index_select(0, h_ray.index_select(0, inc)))
-        out_splat.append(accel.slot_splat.index_select(0, h_ent.index_select(0, inc)))
+        # place of each kept hit among its ray's hits of all rounds (kept hits are a prefix of each ray's
+        # segment here): the final ray-major order is then a scatter, not a sort
+        g_ray = ray_id.index_select(0, h_ray.index_select(0, inc))
+        out_ray.append(g_ray)
+        out_pos.append(n_done.index_select(0, g_ray) + inc - segs.start_of.index_select(0, inc))
+        out_splat.append(h_ent.index_select(0, inc))
+        n_done.index_add_(0, g_ray, torch.ones_like(g_ray))
         log_t = log_t + torch.zeros_like(log_t).index_add(0, h_ray.index_select(0, inc), la.index_select(0, inc))
         keep = torch.nonzero(alive & (log_t >= log_tmin)).squeeze(1)
         ray_id, t_cur, t_end, log_t = (v.index_select(0, keep) for v in (ray_id, t_cur, t_end, log_t))
@@ -315,9 +315,10 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         e = torch.zeros(0, dtype=torch.long, device=dev)
         return e, e
     ray = torch.cat(out_ray)
-    splat = torch.cat(out_splat)
-    order = torch.argsort(ray, stable=True)  # rounds are in front-to-back order already
-    return ray.index_select(0, order), splat.index_select(0, order)
+    first = torch.cumsum(n_done, 0) - n_done
+    pos = first.index_select(0, ray) + torch.cat(out_pos)
+    splat = torch.empty_like(ray).index_copy_(0, pos, torch.cat(out_splat))
+    return torch.repeat_interleave(torch.arange(R, device=dev), n_done, output_size=ray.numel()), splat
 
 
 def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
