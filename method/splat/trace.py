@@ -247,32 +247,31 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         step.append(torch.where(pos, 1, -1))
         t_max.append(torch.where(d[j].abs() > 1e-30, (nxt - o[j]) * iv[j], torch.full_like(p_j, float("inf"))))
         t_delta.append((cell[j] * iv[j]).abs())
+    # the stepping state as (3, n) tensors: one argmin, gather and scatter per step instead of per axis
+    ci, step, t_max, t_delta = (torch.stack(v, 0) for v in (ci, step, t_max, t_delta))
+    mult = torch.tensor([accel.res[1] * accel.res[2], accel.res[2], 1], device=dev)[:, None]
+    res_col = torch.tensor(accel.res, device=dev)[:, None]
     log_t = torch.zeros(active.numel(), dtype=torch.float64, device=dev)
     ray_id = active
     log_tmin = math.log(T_min)
     out_ray, out_splat, out_pos = [], [], []
     n_done = torch.zeros(R, dtype=torch.long, device=dev)  # hits kept so far per ray
-    m0, m1 = accel.res[1] * accel.res[2], accel.res[2]
     while ray_id.numel():
         # -- up to K cells per ray: (ray, cell, t_in, t_out) records, ray-major
         recs_c, recs_in, recs_out, recs_ok = [], [], [], []
         alive = torch.ones(ray_id.numel(), dtype=torch.bool, device=dev)
         for _ in range(steps_per_round):
-            sx = (t_max[0] <= t_max[1]) & (t_max[0] <= t_max[2])  # ties: x before y before z
-            sy = ~sx & (t_max[1] <= t_max[2])
-            sz = ~(sx | sy)
-            t_next = torch.where(sx, t_max[0], torch.where(sy, t_max[1], t_max[2]))
+            t_next, ax = t_max.min(0)  # ties: the first axis (x before y before z)
             t_out = torch.minimum(t_next, t_end)
-            recs_c.append(ci[0] * m0 + ci[1] * m1 + ci[2])
+            recs_c.append((ci * mult).sum(0))
             recs_in.append(t_cur)
             recs_out.append(t_out)
             recs_ok.append(alive)
-            for j, sj in enumerate((sx, sy, sz)):
-                ci[j] = torch.where(sj, ci[j] + step[j], ci[j])
-                t_max[j] = torch.where(sj, t_max[j] + t_delta[j], t_max[j])
+            ax = ax[None]
+            ci.scatter_add_(0, ax, step.gather(0, ax))
+            t_max.scatter_add_(0, ax, t_delta.gather(0, ax))
             t_cur = t_out
-            alive = alive & (t_next < t_end) & (ci[0] >= 0) & (ci[0] < accel.res[0]) & (ci[1] >= 0) \
-                & (ci[1] < accel.res[1]) & (ci[2] >= 0) & (ci[2] < accel.res[2])
+            alive = alive & (t_next < t_end) & ((ci >= 0) & (ci < res_col)).all(0)
         cells = torch.stack(recs_c, 1).reshape(-1)
         ok = torch.stack(recs_ok, 1).reshape(-1)
         cells = cells.clamp(0, accel.blk_start.numel() - 2)
@@ -310,7 +309,8 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         log_t = log_t + torch.zeros_like(log_t).index_add(0, h_ray.index_select(0, inc), la.index_select(0, inc))
         keep = torch.nonzero(alive & (log_t >= log_tmin)).squeeze(1)
         ray_id, t_cur, t_end, log_t = (v.index_select(0, keep) for v in (ray_id, t_cur, t_end, log_t))
-        o, d, ci, step, t_max, t_delta = ([v.index_select(0, keep) for v in lst] for lst in (o, d, ci, step, t_max, t_delta))
+        o, d = ([v.index_select(0, keep) for v in lst] for lst in (o, d))
+        ci, step, t_max, t_delta = (v.index_select(1, keep) for v in (ci, step, t_max, t_delta))
     if not out_ray:
         e = torch.zeros(0, dtype=torch.long, device=dev)
         return e, e
