@@ -201,6 +201,19 @@ def peak_rss_mb(n: int, size: int, ref_size: int | None) -> dict:
             "pairs": pairs, "working_mb": (peak - before) / 1024.0}
 
 
+def run_trace(device: str, repeats: int) -> dict:
+    """The tracer keys: random volume and splats on surfaces (also alone: ``--trace-only``)."""
+    res: dict = {}
+    tr = time_trace(20_000, 1024, 64, repeats, device)
+    res["trace_1024pts_64dirs_20k"] = tr["query"]
+    res["trace_build_20k"] = tr["build"]
+    res["trace_detail"] = tr
+    ts = time_trace(20_000, 1024, 64, repeats, device, surfaces=True)
+    res["trace_1024pts_64dirs_20k_surfaces"] = ts["query"]
+    res["trace_detail_surfaces"] = ts
+    return res
+
+
 def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
     """All measurements; writes the charts beside ``out_path``."""
     from lumibench.progress import track
@@ -225,13 +238,7 @@ def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
         else:
             scaling["vs_pixels_at_20k_fixed_scene"].append(row)
     res["raster_scaling"] = scaling
-    tr = time_trace(20_000, 1024, 64, repeats, device)
-    res["trace_1024pts_64dirs_20k"] = tr["query"]
-    res["trace_build_20k"] = tr["build"]
-    res["trace_detail"] = tr
-    ts = time_trace(20_000, 1024, 64, repeats, device, surfaces=True)
-    res["trace_1024pts_64dirs_20k_surfaces"] = ts["query"]
-    res["trace_detail_surfaces"] = ts
+    res.update(run_trace(device, repeats))
     if not quick:
         sweep = []
         for fac in track([0.25, 0.5, 1.0, 2.0], description="trace cell sweep"):
@@ -300,6 +307,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2, the CI machine)")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
     ap.add_argument("--quick", action="store_true", help="small cases only (smoke test)")
+    ap.add_argument("--trace-only", action="store_true", help="only the tracer keys (no rasterizer, sweep, chart)")
     args = ap.parse_args(argv)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch sees no CUDA device; use --device cpu")
@@ -312,7 +320,10 @@ def main(argv=None) -> int:
     dev = args.device
     load_before = list(os.getloadavg())
     result = {"device": _device_name(dev), "threads": torch.get_num_threads()}
-    result.update(run_all(dev, args.repeats, args.quick, out_path))
+    if args.trace_only:
+        result.update({"unit": "seconds (median)", "repeats": args.repeats}, **run_trace(dev, args.repeats))
+    else:
+        result.update(run_all(dev, args.repeats, args.quick, out_path))
     result.update(device=_device_name(dev), threads=torch.get_num_threads(), torch=torch.__version__,
                   omp_wait_policy=os.environ.get("OMP_WAIT_POLICY"),
                   python=platform.python_version(), command=" ".join(["python -m method.splat.bench"] + list(argv or sys.argv[1:])))
