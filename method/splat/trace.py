@@ -220,10 +220,11 @@ def _candidates(accel: TraceAccel, b0, nb, recd, max_alpha: float, chunk: int):
 
 
 def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: float, steps_per_round: int,
-           chunk: int = CANDIDATE_CHUNK):
-    """No-grad traversal: returns the composited hits (ray, splat) in front-to-back order per ray."""
+           chunk: int | None = None):
+    """No-grad traversal: returns the composited hits (ray, splat, alpha) in front-to-back order per ray."""
     dev, dt = origins.device, origins.dtype
     R = origins.shape[0]
+    chunk = CANDIDATE_CHUNK if chunk is None else chunk
     res = torch.tensor(accel.res, device=dev)
     lo, cell = accel.lo, accel.cell
     hi = lo + cell * res.to(dt)
@@ -254,7 +255,7 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
     log_t = torch.zeros(active.numel(), dtype=torch.float64, device=dev)
     ray_id = active
     log_tmin = math.log(T_min)
-    out_ray, out_splat, out_pos = [], [], []
+    out_ray, out_splat, out_pos, out_alpha = [], [], [], []
     n_done = torch.zeros(R, dtype=torch.long, device=dev)  # hits kept so far per ray
     while ray_id.numel():
         # -- up to K cells per ray: (ray, cell, t_in, t_out) records, ray-major
@@ -305,6 +306,7 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         out_ray.append(g_ray)
         out_pos.append(n_done.index_select(0, g_ray) + inc - segs.start_of.index_select(0, inc))
         out_splat.append(h_ent.index_select(0, inc))
+        out_alpha.append(h_alpha.index_select(0, inc))
         n_done.index_add_(0, g_ray, torch.ones_like(g_ray))
         log_t = log_t + torch.zeros_like(log_t).index_add(0, h_ray.index_select(0, inc), la.index_select(0, inc))
         keep = torch.nonzero(alive & (log_t >= log_tmin)).squeeze(1)
@@ -313,12 +315,13 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
         ci, step, t_max, t_delta = (v.index_select(1, keep) for v in (ci, step, t_max, t_delta))
     if not out_ray:
         e = torch.zeros(0, dtype=torch.long, device=dev)
-        return e, e
+        return e, e, origins.new_zeros(0)
     ray = torch.cat(out_ray)
     first = torch.cumsum(n_done, 0) - n_done
     pos = first.index_select(0, ray) + torch.cat(out_pos)
     splat = torch.empty_like(ray).index_copy_(0, pos, torch.cat(out_splat))
-    return torch.repeat_interleave(torch.arange(R, device=dev), n_done, output_size=ray.numel()), splat
+    alpha = torch.empty(ray.numel(), dtype=dt, device=dev).index_copy_(0, pos, torch.cat(out_alpha))
+    return torch.repeat_interleave(torch.arange(R, device=dev), n_done, output_size=ray.numel()), splat, alpha
 
 
 def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -350,18 +353,22 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
                  for i in range(0, R, ray_chunk)]
         ray = torch.cat([p[0] + i * ray_chunk for i, p in enumerate(parts)]) if parts else tmin.new_zeros(0).long()
         splat = torch.cat([p[1] for p in parts]) if parts else ray
-    # differentiable recomputation on the composited hits only (rays are treated as constants)
-    q = _gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T, splat)
-    oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()
-    ox, oy, oz = _cols(oT, ray)
-    dx, dy, dz = _cols(dT, ray)
-    ow = q[8] * ox + q[9] * oy + q[10] * oz + q[11]
-    dw = q[8] * dx + q[9] * dy + q[10] * dz
-    t = -ow / dw
-    px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
-    pu = q[0] * px + q[1] * py + q[2] * pz + q[3]
-    pv = q[4] * px + q[5] * py + q[6] * pz + q[7]
-    alpha = torch.clamp_max(q[12] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+        alpha = torch.cat([p[2] for p in parts]) if parts else tmin[:0]
+    if torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales, opacities)):
+        # differentiable recomputation on the composited hits only (rays are treated as constants); the
+        # traversal computed the same alphas with the same operations, so without gradients they are reused
+        q = _gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T,
+                         splat)
+        oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()
+        ox, oy, oz = _cols(oT, ray)
+        dx, dy, dz = _cols(dT, ray)
+        ow = q[8] * ox + q[9] * oy + q[10] * oz + q[11]
+        dw = q[8] * dx + q[9] * dy + q[10] * dz
+        t = -ow / dw
+        px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+        pu = q[0] * px + q[1] * py + q[2] * pz + q[3]
+        pv = q[4] * px + q[5] * py + q[6] * pz + q[7]
+        alpha = torch.clamp_max(q[12] * torch.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
     segs = Segments(ray, R)
     la = torch.log1p(-alpha)
     trans_before = torch.exp(segs.exclusive_cumsum(la))
