@@ -77,6 +77,18 @@ def measure_frames(scene: str, profile: str, workdir: Path, *, measure: int = 2,
             **_summary(res["frames"]), "blender": res["blender"]}
 
 
+def compare_persistent_data(scene: str, profile: str, workdir: Path, rounds: int = 2) -> dict[str, Any]:
+    """Persistent data off vs on, alternated in the same run so that the machine's load hits both alike."""
+    runs: dict[str, list[dict[str, Any]]] = {"off": [], "on": []}
+    for _ in range(rounds):
+        for key, flag in (("off", False), ("on", True)):
+            runs[key].append(measure_frames(scene, profile, workdir, measure=3, persistent=flag))
+    off = min(runs["off"], key=lambda r: r["frame_s"])
+    on = min(runs["on"], key=lambda r: r["frame_s"])
+    return {"off": off, "on": on, "frame_speedup": off["frame_s"] / on["frame_s"],
+            "rounds": rounds, "frame_s_all": {k: [r["frame_s"] for r in v] for k, v in runs.items()}}
+
+
 def measure_jobs(scene: str, profile: str, workdir: Path, frames: int, test_views: int, jobs: int) -> dict[str, Any]:
     """Wall time of a fresh render_scene (both variants) with ``jobs`` workers, start-up included."""
     out = workdir / f"jobs{jobs}"
@@ -116,9 +128,7 @@ def run_bench(out: Path, *, quick: bool = False, progress_print=print) -> dict[s
             per_profile.append(measure_frames("spheres", prof, work / "frames", measure=1 if prof == "full" else 3))
         doc["per_frame"] = per_profile
         progress_print("persistent data: off vs on (spheres, small)")
-        off = measure_frames("spheres", "small", work / "persist", measure=3, persistent=False)
-        on = next(p for p in per_profile if p["profile"] == "small")
-        doc["persistent_data"] = {"off": off, "on": on, "frame_speedup": off["frame_s"] / on["frame_s"]}
+        doc["persistent_data"] = compare_persistent_data("spheres", "small", work / "persist")
         scenes = [s for s in DATASET_SCENES if s in spec_mod.available_scenes()]
         progress_print(f"per-scene timing at small: {', '.join(scenes)}")
         doc["scenes_small"] = [measure_frames(s, "small", work / "scenes", measure=2) for s in scenes]
