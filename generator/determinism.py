@@ -20,6 +20,12 @@ and a script parent gave different normal .npz bits: the spawned worker's heap l
 is `render_scene(..., bit_exact=True)` / `--bit-exact` / `make dataset BIT_EXACT=1`: byte-identical for
 the same command, at the cost of a Blender start-up per frame (ci scene: ~30 s instead of ~10 s with
 JOBS=2).
+Tried later (lead, 2026-11-22) and dropped: a worker pinned to ONE core before bpy loads (Blender's task
+scheduler and Embree's BVH build then single-threaded), started fresh for every frame with ASLR off. One
+frame gave the same bytes in 6 of 6 runs and two whole-scene runs matched, but a kill-and-resume run in a
+fresh clone still differed from an uninterrupted one in one normal .npz; normals also changed with the
+parent's start-up (a `python -c` parent vs a script parent: the spawned worker's heap layout differs) and
+with what the process rendered before a frame. It cost ~3x the ci render time for no guarantee.
 Forking a worker after the scene is built (to give every frame the same history) deadlocks: Blender's
 TBB thread pool does not survive fork.
 
