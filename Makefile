@@ -14,7 +14,6 @@ RESULTS ?= results
 JOBS ?= 1
 SCENES ?=
 LIGHTS ?=
-BIT_EXACT ?=
 METHODS ?=
 EXECUTOR ?= local
 PYTEST_ARGS ?=
@@ -37,7 +36,7 @@ $(STAMP): pyproject.toml Makefile
 	@echo "setup: $(VENV) ready"
 
 dataset: setup
-	$(PY) -m generator dataset --profile $(PROFILE) --data $(DATA) --jobs $(JOBS) $(if $(SCENES),--scenes $(SCENES),) $(if $(LIGHTS),--lights $(LIGHTS),) $(if $(BIT_EXACT),--bit-exact,)
+	$(PY) -m generator dataset --profile $(PROFILE) --data $(DATA) --jobs $(JOBS) $(if $(SCENES),--scenes $(SCENES),) $(if $(LIGHTS),--lights $(LIGHTS),)
 
 eval: setup
 	$(PY) -m benchmark eval --profile $(PROFILE) --data $(DATA) --runs $(RUNS) --results $(RESULTS) --executor $(EXECUTOR) --jobs $(JOBS) $(if $(METHODS),--methods $(METHODS),)

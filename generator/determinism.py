@@ -11,15 +11,6 @@ Measured with bpy 5.0.1 (Cycles, CPU, this repository's scenes):
   persistent worker per job and documents the bound instead: albedo, roughness and dynamic-mask files
   are byte-identical, normal .npz agree within 1e-5 (silhouette pixels divide by a small coverage),
   PNGs within one 8-bit step at rare pixels.
-Measured later (lead, 2026-11-22): a worker pinned to ONE core before bpy loads (so Blender's task
-scheduler and Embree's BVH build run single-threaded), started fresh for every frame with ASLR off, gave
-the same bytes in 6 of 6 runs of one frame and in whole-scene runs, including a run killed mid-scene and
-resumed (tests/test_generator_pipeline.py); normals still change with what the process did before a
-frame (rendering frames 0-2 first changed frame 3) and with the parent's start-up (a `python -c` parent
-and a script parent gave different normal .npz bits: the spawned worker's heap layout differs). That
-is `render_scene(..., bit_exact=True)` / `--bit-exact` / `make dataset BIT_EXACT=1`: byte-identical for
-the same command, at the cost of a Blender start-up per frame (ci scene: ~30 s instead of ~10 s with
-JOBS=2).
 Tried later (lead, 2026-11-22) and dropped: a worker pinned to ONE core before bpy loads (Blender's task
 scheduler and Embree's BVH build then single-threaded), started fresh for every frame with ASLR off. One
 frame gave the same bytes in 6 of 6 runs and two whole-scene runs matched, but a kill-and-resume run in a

@@ -128,17 +128,13 @@ def worker_threads(jobs: int) -> int:
 
 def render_scene(scene: str, profile: str, data: Path, jobs: int = 1, lights: list[str] | None = None,
                  progress: bool = True, *, spec=None, frames: int | None = None,
-                 test_views: int | None = None, on_rendered: Callable[[FrameJob, dict], None] | None = None,
-                 bit_exact: bool = False) -> Path:
+                 test_views: int | None = None, on_rendered: Callable[[FrameJob, dict], None] | None = None) -> Path:
     """Render (or finish) both variants of ``scene``; returns the dynamic variant's directory.
 
     Each of the ``jobs`` worker processes builds the scene once and renders many frames. Reproducibility
     (measured, see generator/determinism.py): files are byte-identical across runs, JOBS values and
     interrupted/resumed runs, except that Blender's float results can move in the last bit at a few pixels
     of moving objects: normal .npz within 1e-5, and rarely one 8-bit step in a PNG pixel.
-    ``bit_exact`` removes that too: every frame gets a fresh worker pinned to one core (Blender then runs
-    single-threaded, and no frame sees another's history), at the price of a Blender start-up per frame
-    and one core per worker (use jobs = cores).
     ``spec``, ``frames`` and ``test_views`` override the scene file and the profile (tests use them);
     ``on_rendered`` is called in this process after each frame a worker rendered.
     """
@@ -156,7 +152,7 @@ def render_scene(scene: str, profile: str, data: Path, jobs: int = 1, lights: li
         _write_dataset_json(v, run, spec_hash, complete=False)
         _remove_stale_temporaries(v)
     if pending:
-        _render_frames(run, pending, spec_hash, jobs, progress, on_rendered, bit_exact)
+        _render_frames(run, pending, spec_hash, jobs, progress, on_rendered)
     for j in copies:
         _copy_frame(j, settings)
     for v in variants:
@@ -165,16 +161,15 @@ def render_scene(scene: str, profile: str, data: Path, jobs: int = 1, lights: li
 
 
 def _render_frames(run: SceneRun, pending: list[FrameJob], spec_hash: str, jobs: int, progress: bool,
-                   on_rendered, bit_exact: bool = False) -> None:
+                   on_rendered) -> None:
     n_workers = min(jobs, len(pending))
     ctx = multiprocessing.get_context("spawn")
     hdrs = {n: str(p) for n, p in run.hdr_paths.items()}
-    threads = 1 if bit_exact else worker_threads(n_workers)
-    init_args = (run.spec, spec_hash, run.settings, hdrs, threads, True, bit_exact)
+    init_args = (run.spec, spec_hash, run.settings, hdrs, worker_threads(n_workers))
     # Worker processes are exec'd while ASLR is off for this process's threads (generator/determinism.py).
     with no_aslr_children(), make_progress(disable=not progress) as bar:
         pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx, initializer=render_worker.init_worker,
-                                   initargs=init_args, max_tasks_per_child=1 if bit_exact else None)
+                                   initargs=init_args)
         task = bar.add_task(f"{run.spec.name} ({run.profile.name})", total=len(pending), rate="")
         futures = {pool.submit(render_worker.render_job, j): j for j in pending}
         t0 = time.perf_counter()

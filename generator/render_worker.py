@@ -19,11 +19,9 @@ _SPEC_HASH = ""
 
 
 def init_worker(spec, spec_hash: str, settings, hdr_paths: dict[str, str], threads: int,
-                persistent_data: bool = True, pin_one_core: bool = False) -> None:
+                persistent_data: bool = True) -> None:
     global _RENDERER, _SPEC_HASH
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (it stops the workers)
-    if pin_one_core:
-        _pin_to_one_core()
     _watch_parent()
     _silence_stdout()
     drop_blender_script_paths()
@@ -37,16 +35,6 @@ def render_job(job) -> dict[str, Any]:
     if _RENDERER is None:
         raise RuntimeError("render worker used before init_worker")
     return _RENDERER.render(job, _SPEC_HASH)
-
-
-def _pin_to_one_core() -> None:
-    """Bind this worker to one core before bpy loads, so that Blender's task scheduler (and Embree's BVH
-    build) run single-threaded: with that, a fresh process and no ASLR, a frame's bytes do not vary
-    (generator/determinism.py). Workers spread over the usable cores by pid."""
-    if not hasattr(os, "sched_setaffinity"):
-        return
-    cores = sorted(os.sched_getaffinity(0))
-    os.sched_setaffinity(0, {cores[os.getpid() % len(cores)]})
 
 
 def drop_blender_script_paths() -> None:

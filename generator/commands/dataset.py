@@ -15,9 +15,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenes", nargs="+", default=None, help="scene names or scene YAML paths (default: every configs/scenes/*.yaml)")
     p.add_argument("--lights", nargs="+", default=None,
                    help="light names from configs/lights.yaml or .hdr/.exr paths (default: all four named lights)")
-    p.add_argument("--bit-exact", action="store_true",
-                   help="byte-identical files across runs and resumes: a fresh single-core worker per frame "
-                        "(slower; use --jobs = cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -36,6 +33,6 @@ def run(args: argparse.Namespace) -> int:
     pipeline.check_writable(Path(args.data))
     for name in scenes:
         out = pipeline.render_scene(name, args.profile, Path(args.data), jobs=args.jobs, lights=args.lights,
-                                    progress=not args.no_progress, bit_exact=args.bit_exact)
+                                    progress=not args.no_progress)
         print(f"{name}: {out}")
     return 0
