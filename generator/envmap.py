@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lumibench.color import linear_to_srgb
 from lumibench.errors import UserError
 from lumibench.io import atomic_path, read_image, write_png
 
@@ -363,7 +364,7 @@ def preview_png(path: str | Path, img: np.ndarray, min_width: int = 256) -> None
     key = float(np.exp(np.mean(np.log(lum + 1e-6))))
     x = img * (0.18 / max(key, 1e-6))
     x = x / (1.0 + _luminance(x)[..., None])
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.clip(x, 0.0031308, None), 1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(x)
     k = max(1, int(math.ceil(min_width / img.shape[1])))
     srgb = np.repeat(np.repeat(srgb, k, axis=0), k, axis=1)
     write_png(path, np.clip(srgb, 0.0, 1.0))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lumibench.color import linear_to_srgb
 from lumibench import layout
 from lumibench.io import atomic_path, write_png
 
@@ -73,9 +74,8 @@ def ground_truth_arrays(layers: dict[str, np.ndarray], aov_albedo: str = "albedo
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 transfer function, for values in [0, 1]."""
-    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    """IEC 61966-2-1 transfer function, for values clipped to [0, 1] (float64)."""
+    return linear_to_srgb(np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0))
 
 
 def write_npz(path: str | Path, name: str, array: np.ndarray) -> None:
