@@ -22,7 +22,6 @@ from lumibench.machine import cpu_name, usable_cores
 from lumibench.profiles import load_profile
 
 from . import pipeline, spec as spec_mod
-from .determinism import no_aslr_children
 from .jobs import RenderSettings, gt_samples, plan_scene
 
 
@@ -66,7 +65,7 @@ def measure_frames(scene: str, profile: str, workdir: Path, *, measure: int = 2,
     n = len(run.plan.times)
     hdrs = {k: str(v) for k, v in run.hdr_paths.items()}
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(1, mp_context=ctx) as pool, no_aslr_children():
+    with ProcessPoolExecutor(1, mp_context=ctx) as pool:
         fut = pool.submit(_measure_in_worker, run.spec, run.settings, hdrs, str(workdir / profile), n, measure,
                           threads, persistent)
         res = fut.result()

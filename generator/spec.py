@@ -26,7 +26,7 @@ PRIMITIVES = ("box", "sphere", "ico_sphere", "cylinder", "cone", "torus", "rig")
 TEXTURES = ("none", "checker", "noise", "bricks", "stripes")
 TECHNICAL_SCENES = ("calib_sphere",)  # not part of the benchmark's five; rendered for convention tests
 # Bump when generator/motion.py or generator/blender/build.py change what a given spec renders.
-BUILDER_VERSION = 1
+BUILDER_VERSION = 2  # 2: UV spheres built vertex by vertex (deterministic face-corner order)
 SCENE_BOX = 1.3  # everything must stay inside [-SCENE_BOX, SCENE_BOX]^3 (the method initialises there)
 
 Vec3 = tuple[float, float, float]

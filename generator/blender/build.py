@@ -40,7 +40,7 @@ def make_mesh(name: str, primitive: str, size) -> "bpy.types.Mesh":
         bmesh.ops.create_cube(bm, size=1.0)
         smooth = False
     elif primitive == "sphere":
-        bmesh.ops.create_uvsphere(bm, u_segments=SEGMENTS, v_segments=SEGMENTS // 2, radius=0.5)
+        _uv_sphere(bm, SEGMENTS, SEGMENTS // 2, 0.5)
     elif primitive == "ico_sphere":
         bmesh.ops.create_icosphere(bm, subdivisions=2, radius=0.5)
     elif primitive in ("cylinder", "cone"):
@@ -61,6 +61,30 @@ def make_mesh(name: str, primitive: str, size) -> "bpy.types.Mesh":
         if primitive in ("cylinder", "cone"):
             mesh.set_sharp_from_angle(angle=math.radians(50.0))  # keep the caps' rims crisp
     return mesh
+
+
+def _uv_sphere(bm, segments: int, rings: int, radius: float) -> None:
+    """A UV sphere with poles on z: triangle fans at the poles, quads between ``rings`` latitude bands.
+
+    Built vertex by vertex rather than with ``bmesh.ops.create_uvsphere``: that operator welds its pole
+    vertices with a pass whose face-corner order follows memory addresses, so the same call gave meshes
+    whose faces start at different corners in different processes; face normals (summed corner by
+    corner) then differed in the last bit, and so did every render of a moving sphere.
+    """
+    top = bm.verts.new((0.0, 0.0, radius))
+    bands = []
+    for j in range(1, rings):
+        polar = math.pi * j / rings
+        z, rho = radius * math.cos(polar), radius * math.sin(polar)
+        bands.append([bm.verts.new((rho * math.cos(2 * math.pi * i / segments),
+                                    rho * math.sin(2 * math.pi * i / segments), z)) for i in range(segments)])
+    bottom = bm.verts.new((0.0, 0.0, -radius))
+    for i in range(segments):
+        k = (i + 1) % segments
+        bm.faces.new((top, bands[0][i], bands[0][k]))  # counter-clockwise seen from outside
+        for upper, lower in zip(bands, bands[1:]):
+            bm.faces.new((upper[i], lower[i], lower[k], upper[k]))
+        bm.faces.new((bands[-1][i], bottom, bands[-1][k]))
 
 
 def _torus(bm, sx: float, sy: float, thickness: float, ring_segments: int = SEGMENTS, tube_segments: int = 10) -> None:
