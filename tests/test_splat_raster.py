@@ -53,6 +53,35 @@ def test_forward_matches_dense_reference(cfg):
         torch.testing.assert_close(a[k], b[k], atol=1e-5 * scale, rtol=0, msg=k)
 
 
+def test_cuda_span_grouping_matches_reference(monkeypatch):
+    """The grouping CUDA uses (span lengths padded to powers of two), run here on CPU: padded pixels past a
+    row's span must be masked, or pairs from the next image row leak in."""
+    import method.splat.rasterize as rz
+
+    monkeypatch.setitem(rz.EXACT_SPAN_MAX, False, rz.EXACT_SPAN_MAX[True])
+    for cfg in [SCENES[0], SCENES[4], SCENES[5], dict(seed=8, n=96, spread=3.0)]:  # the last two cross the border
+        params, cam = random_scene(**cfg)
+        a, b = _fast(params, cam), rasterize_dense(*params, cam)
+        for k in KEYS:
+            torch.testing.assert_close(a[k], b[k], atol=1e-5 * max(1.0, float(b[k].abs().max())), rtol=0, msg=k)
+
+
+def test_segment_sums_by_prefix_match_segment_reduce():
+    """Per-segment sums through a float64 prefix sum (the CUDA path) equal aten's segment_reduce,
+    empty segments included."""
+    from method.splat.segments import Segments
+
+    g = torch.Generator().manual_seed(0)
+    seg = torch.sort(torch.randint(0, 500, (20_000,), generator=g) * 2).values  # odd segments stay empty
+    segs = Segments(seg, 1001)
+    for x in (torch.rand(seg.numel(), generator=g), torch.randn(seg.numel(), 4, generator=g)):
+        ref = torch.segment_reduce(x.double(), "sum", lengths=segs.counts, axis=0).float()
+        got = segs.sum_by_prefix(x)
+        assert got.dtype == x.dtype and got.shape == ref.shape
+        torch.testing.assert_close(got, ref, atol=1e-5, rtol=1e-6)
+        assert torch.all(got[1::2] == 0)
+
+
 def test_stop_and_clamp_are_exercised(monkeypatch):
     """The near-opaque scene really stops early (else the comparison above would not cover the rule)."""
     import method.splat.rasterize as rz
@@ -241,6 +270,27 @@ def test_cpu_cuda_agree():
     b = rasterize(*[p.cuda() for p in params], cam.to("cuda"))
     for k in KEYS:
         torch.testing.assert_close(getattr(b, k).cpu(), getattr(a, k), atol=1e-9, rtol=0, msg=k)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cpu_cuda_agree_float32_with_gradients():
+    """float32 takes CUDA's own paths (prefix-sum segment sums, power-of-two span groups)."""
+    params, cam = random_scene(seed=7, n=200, size=48)
+    outs, grads = [], []
+    for dev in ("cpu", "cuda"):
+        p = [t.float().to(dev).requires_grad_(True) for t in params]
+        out = rasterize(*p, cam.to(dev, torch.float32))
+        (out.features.sum() + out.distortion.sum() + out.normal.sum() + 0.1 * out.depth_expected.sum()).backward()
+        outs.append({k: getattr(out, k).detach().cpu() for k in KEYS})
+        grads.append([t.grad.cpu() for t in p])
+    # normal_from_depth (finite differences of depth) is ill-conditioned in float32 at silhouettes; it is
+    # compared in float64 by test_cpu_cuda_agree
+    for k in [k for k in KEYS if k != "normal_from_depth"]:
+        torch.testing.assert_close(outs[1][k], outs[0][k], atol=2e-5 * max(1.0, float(outs[0][k].abs().max())),
+                                   rtol=0, msg=k)
+    for ga, gb in zip(grads[0], grads[1]):
+        torch.testing.assert_close(gb, ga, atol=1e-4 * max(1.0, float(ga.abs().max())), rtol=0)
 
 
 def test_camera_inside_the_cloud_matches_reference():

@@ -220,6 +220,8 @@ def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
 
     res: dict = {"unit": "seconds (median)", "repeats": repeats}
     keyed = [(100, 20_000)] if quick else [(100, 20_000), (200, 50_000), (400, 200_000)]
+    if device.startswith("cuda") and not quick:
+        keyed.append((800, 300_000))  # the paper's training size (NeRF-synthetic 800 px, ~300k splats)
     splat_series = [5_000, 10_000, 20_000] if quick else [5_000, 10_000, 20_000, 40_000, 80_000, 160_000]
     pixel_series = [50, 100] if quick else [50, 100, 200, 400]
     jobs = [("key", s, n) for s, n in keyed] + [("splats", 100, n) for n in splat_series] \
@@ -230,6 +232,9 @@ def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
         t, pairs, cpu, tmin = time_raster(n, size, reps, device, ref_size=100 if kind == "pixels" else None)
         row = {"pixels": size * size, "size": size, "splats": n, "seconds": t, "seconds_min": tmin, "pairs": pairs,
                "cpu_seconds": cpu}
+        if device.startswith("cuda"):
+            row["cuda_peak_mb"] = torch.cuda.max_memory_allocated(device) / 2 ** 20
+            torch.cuda.reset_peak_memory_stats(device)
         if kind == "key":
             res[f"raster_fwdbwd_{size}px_{n // 1000}k"] = t
             res.setdefault("raster_detail", {})[f"{size}px_{n // 1000}k"] = row

@@ -33,6 +33,11 @@ from .splats import check_splats, splat_frames
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_STOP = 1e-4
+# Candidate rows are grouped by span length, exact up to this length and then by powers of two; each group
+# costs ~25 kernel launches and a sync. CPU keeps the exact lengths up to 12 its targets were measured with
+# (powers of two only: x0.99 and x1.07 in two A/B runs at 100 px / 20k, no gain); CUDA, where launches dominate, uses powers of
+# two (x0.76 at 800 px / 300k, BENCHMARKS.md). Indexed by "is CUDA"; method.splat.bench_ab switches it.
+EXACT_SPAN_MAX = {False: 12, True: 2}
 
 
 @dataclass
@@ -282,11 +287,12 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
     j0 = torch.where(full, bx0, torch.maximum(j0, bx0))
     j1 = torch.where(full, bx1, torch.minimum(j1, bx1))
     cnt = (j1 - j0 + 1).clamp_min(0)
-    # per-pixel exact test: rows grouped by span length (exact up to 12, then powers of two) and each
+    # per-pixel exact test: rows grouped by span length (exact up to 12 on CPU, then powers of two) and each
     # group evaluated densely with broadcasting; rows are permuted once so that groups are contiguous
     # slices (no per-pixel and no per-group gathers of splat parameters)
     pow2 = torch.pow(2, torch.ceil(torch.log2(cnt.clamp_min(1).double()))).long()
-    lw = torch.where(cnt <= 12, cnt, pow2)
+    exact_max = EXACT_SPAN_MAX[dev.type == "cuda"]
+    lw = torch.where(cnt <= exact_max, cnt, pow2)
     perm = torch.argsort(lw)
     lw_sorted = lw.index_select(0, perm)
     levels, sizes = torch.unique_consecutive(lw_sorted, return_counts=True)
@@ -317,7 +323,7 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
         alpha = torch.clamp_max(col[10] * torch.exp(-0.5 * torch.where(use3, rho3, rho2)), ALPHA_MAX)
         depth = torch.where(use3, col[8] * inv, col[9])
         ok = (alpha >= ALPHA_MIN) & (depth >= near)
-        if S > 12:
+        if S > exact_max:  # padded group: mask the pixels past each row's span
             ok &= ar[None, :] < cntp[sl, None]
         flat = torch.nonzero(ok.reshape(-1)).squeeze(1)
         out_r.append(perm[sl].index_select(0, torch.div(flat, S, rounding_mode="floor")))

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import torch
 
+# Per-segment sums on CUDA through prefix sums (see Segments.sum); a switch for A/B benchmarks.
+CUDA_PREFIX_SUMS = True
+
 
 class Segments:
     """Segment bookkeeping for a packed list whose segment ids ``seg`` are sorted (non-decreasing)."""
@@ -27,10 +30,26 @@ class Segments:
         return (excl - excl.index_select(0, self.start_of)).to(x.dtype)
 
     def sum(self, x: torch.Tensor) -> torch.Tensor:
-        """Per-segment sum along dim 0, shape (num_segments, *x.shape[1:])."""
+        """Per-segment sum along dim 0, shape (num_segments, *x.shape[1:]).
+
+        On CUDA, 1-D float32 sums are differences of one float64 inclusive prefix sum at the segment ends
+        (deterministic, no atomics): aten's segment_reduce took ~0.6 ms per call at 7.6M pairs on an
+        H100, the prefix sum a fraction of that. 2-D inputs (the tracer's features, often transposed
+        views) stay on segment_reduce: a prefix sum along dim 0 of such a view was 3x slower there.
+        Elsewhere segment_reduce, which is exact in any dtype.
+        """
         if x.shape[0] == 0:
             return x.new_zeros((self.num,) + tuple(x.shape[1:]))
+        if x.is_cuda and x.dim() == 1 and x.dtype != torch.float64 and CUDA_PREFIX_SUMS:
+            return self.sum_by_prefix(x)
         return torch.segment_reduce(x, "sum", lengths=self.counts, axis=0, unsafe=True)
+
+    def sum_by_prefix(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-segment sum as the difference of a float64 inclusive prefix sum at segment ends and starts."""
+        c = torch.cumsum(x.double(), 0)
+        c = torch.cat([c.new_zeros((1,) + tuple(c.shape[1:])), c], 0)
+        ends = self.starts + self.counts
+        return (c.index_select(0, ends) - c.index_select(0, self.starts)).to(x.dtype)
 
     def gather(self, per_segment: torch.Tensor) -> torch.Tensor:
         """Broadcast per-segment values back to the elements."""
