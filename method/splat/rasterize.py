@@ -33,10 +33,11 @@ from .splats import check_splats, splat_frames
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_STOP = 1e-4
-# Candidate rows are grouped by span length, exact up to this length and then by powers of two; each group
-# costs ~25 kernel launches and a sync. CPU keeps the exact lengths up to 12 its targets were measured with
-# (powers of two only: x0.99 and x1.07 in two A/B runs at 100 px / 20k, no gain); CUDA, where launches dominate, uses powers of
-# two (x0.76 at 800 px / 300k, BENCHMARKS.md). Indexed by "is CUDA"; method.splat.bench_ab switches it.
+# Candidate rows are grouped by span length, exact up to this length and then by powers of two; each
+# group costs ~25 kernel launches and a sync. CPU keeps the exact lengths up to 12 its targets were
+# measured with (powers of two only: x0.99 and x1.07 in two A/B runs at 100 px / 20k, no gain); CUDA,
+# where launches dominate, uses powers of two (x0.76 at 800 px / 300k, BENCHMARKS.md). Indexed by
+# "is CUDA"; method.splat.bench_ab switches it.
 EXACT_SPAN_MAX = {False: 12, True: 2}
 
 
