@@ -214,6 +214,19 @@ def run_trace(device: str, repeats: int) -> dict:
     return res
 
 
+def run_trace_scaling(device: str, repeats: int, splats=(20_000, 100_000, 300_000),
+                      points=(1024, 4096, 16384), n_dirs: int = 64) -> list[dict]:
+    """Tracer query time against splat and ray counts (random volume, ``n_dirs`` directions per point)."""
+    from lumibench.progress import track
+
+    rows = []
+    for n, pts in track([(n, p) for n in splats for p in points], description="trace scaling"):
+        tr = time_trace(n, pts, n_dirs, repeats, device)
+        rows.append({"splats": n, "rays": pts * n_dirs, "build": tr["build"], "query": tr["query"],
+                     "mrays_per_s": pts * n_dirs / tr["query"] / 1e6, "mean_visibility": tr["mean_visibility"]})
+    return rows
+
+
 def run_all(device: str, repeats: int, quick: bool, out_path: Path) -> dict:
     """All measurements; writes the charts beside ``out_path``."""
     from lumibench.progress import track
@@ -313,6 +326,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
     ap.add_argument("--quick", action="store_true", help="small cases only (smoke test)")
     ap.add_argument("--trace-only", action="store_true", help="only the tracer keys (no rasterizer, sweep, chart)")
+    ap.add_argument("--trace-scaling", action="store_true",
+                    help="also time the tracer at 20k-300k splats and 65k-1M rays (minutes on a CPU)")
     args = ap.parse_args(argv)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch sees no CUDA device; use --device cpu")
@@ -329,6 +344,8 @@ def main(argv=None) -> int:
         result.update({"unit": "seconds (median)", "repeats": args.repeats}, **run_trace(dev, args.repeats))
     else:
         result.update(run_all(dev, args.repeats, args.quick, out_path))
+    if args.trace_scaling:
+        result["trace_scaling"] = run_trace_scaling(dev, max(1, args.repeats // 2))
     result.update(device=_device_name(dev), threads=torch.get_num_threads(), torch=torch.__version__,
                   omp_wait_policy=os.environ.get("OMP_WAIT_POLICY"),
                   python=platform.python_version(), command=" ".join(["python -m method.splat.bench"] + list(argv or sys.argv[1:])))
