@@ -253,6 +253,21 @@ def test_block_width_and_candidate_chunks_do_not_change_hits(block, chunk, monke
     torch.testing.assert_close(F1, F2, atol=1e-9, rtol=0)
 
 
+def test_cuda_traversal_settings_match_brute_force_on_cpu(monkeypatch):
+    """The CUDA defaults (large candidate chunks, 16 DDA steps per round, 2^20 rays per traversal), run on
+    CPU: the same hits as brute force."""
+    import method.splat.trace as trace_mod
+
+    monkeypatch.setattr(trace_mod, "CANDIDATE_CHUNK", trace_mod.CUDA_CANDIDATE_CHUNK)
+    params = random_scene(seed=5)
+    o, d = random_rays(seed=5, axis_aligned=6)
+    T1, F1 = trace(*params, o, d, 0.02, steps_per_round=trace_mod.STEPS_PER_ROUND[True],
+                   ray_chunk=trace_mod.RAY_CHUNK[True])
+    T2, F2 = trace_dense(*params, o, d, 0.02)
+    torch.testing.assert_close(T1, T2, atol=1e-9, rtol=0)
+    torch.testing.assert_close(F1, F2, atol=1e-9, rtol=0)
+
+
 def test_values_without_gradients_equal_the_differentiable_path():
     """Without gradients the traversal's alphas are reused; with them they are recomputed: same values."""
     params = random_scene(seed=6, opacity=(0.3, 1.0))

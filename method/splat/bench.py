@@ -221,9 +221,13 @@ def run_trace_scaling(device: str, repeats: int, splats=(20_000, 100_000, 300_00
 
     rows = []
     for n, pts in track([(n, p) for n in splats for p in points], description="trace scaling"):
+        if device.startswith("cuda"):
+            torch.cuda.reset_peak_memory_stats(device)
         tr = time_trace(n, pts, n_dirs, repeats, device)
         rows.append({"splats": n, "rays": pts * n_dirs, "build": tr["build"], "query": tr["query"],
                      "mrays_per_s": pts * n_dirs / tr["query"] / 1e6, "mean_visibility": tr["mean_visibility"]})
+        if device.startswith("cuda"):
+            rows[-1]["cuda_peak_mb"] = torch.cuda.max_memory_allocated(device) / 2 ** 20
     return rows
 
 

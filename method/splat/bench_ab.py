@@ -1,5 +1,6 @@
-"""`python -m method.splat.bench_ab [--device cuda]`: the CUDA-specific rasterizer paths against the generic
-ones, in one process, alternating (timings on shared machines drift; ratios taken this way do not).
+"""`python -m method.splat.bench_ab [--device cuda] [--trace-sweep]`: the CUDA-specific rasterizer paths
+against the generic ones, in one process, alternating (timings on shared machines drift; ratios taken this
+way do not); with --trace-sweep, the tracer's chunk sizes and DDA steps per round instead.
 
 "before" = span groups exact up to 12 and aten segment_reduce sums (the CPU choices); "after" = the CUDA
 choices (EXACT_SPAN_MAX, CUDA_PREFIX_SUMS). Prints medians, their ratio, and how far outputs and gradients
@@ -67,10 +68,51 @@ def compare(size: int, n: int, device: str, rounds: int = 8) -> dict:
             "max_rel_grad_diff": max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-12)) for a, b in zip(ga, gb))}
 
 
+def trace_sweep(device: str, rounds: int = 3) -> list[dict]:
+    """Tracer query time for each (candidate chunk, steps per round, ray chunk), interleaved per round."""
+    from . import trace as T
+    from .bench import make_trace_queries
+
+    rows = []
+    means, quats, scales, opac, feats, _ = make_scene(20_000, 100, device=device)
+    accel = T.TraceAccel.build(means, quats, scales, opac)
+    settings = [(c, s, r) for c in (1 << 20, 1 << 22, 1 << 24) for s in (8, 16, 32) for r in (1 << 17, 1 << 20)]
+    name = "CUDA_CANDIDATE_CHUNK" if device.startswith("cuda") else "CANDIDATE_CHUNK"
+    saved = getattr(T, name)
+    try:
+        for pts in (1024, 16384):
+            o, d = make_trace_queries(means, quats, scales, pts, 64)
+            times = {k: [] for k in settings}
+            ref = T.trace(means, quats, scales, opac, feats, o, d, 0.0, accel=accel)
+            for _ in range(rounds + 1):
+                for c, s, r in settings:
+                    setattr(T, name, c)
+                    _sync(device)
+                    t0 = time.perf_counter()
+                    got = T.trace(means, quats, scales, opac, feats, o, d, 0.0, accel=accel, steps_per_round=s,
+                                  ray_chunk=r)
+                    _sync(device)
+                    times[(c, s, r)].append(time.perf_counter() - t0)
+                    assert torch.allclose(got[0], ref[0], atol=1e-5), (c, s, r)
+            for (c, s, r), ts in times.items():
+                rows.append({"rays": o.shape[0], "candidate_chunk": c, "steps_per_round": s, "ray_chunk": r,
+                             "seconds": statistics.median(ts[1:])})
+    finally:
+        setattr(T, name, saved)
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--trace-sweep", action="store_true", help="sweep the tracer's chunking instead")
     args = ap.parse_args(argv)
+    if args.trace_sweep:
+        for r in trace_sweep(args.device):
+            print(f"rays {r['rays']}: candidate chunk 2^{r['candidate_chunk'].bit_length() - 1}, "
+                  f"{r['steps_per_round']} steps/round, ray chunk 2^{r['ray_chunk'].bit_length() - 1}: "
+                  f"{r['seconds'] * 1e3:.1f} ms")
+        return 0
     cases = [(100, 20_000), (400, 200_000), (800, 300_000)] if args.device.startswith("cuda") else [(100, 20_000)]
     for size, n in cases:
         r = compare(size, n, args.device)

@@ -161,6 +161,13 @@ def _cols(mat, idx: torch.Tensor) -> list[torch.Tensor]:
 # slower for the same arithmetic), while each op stays big enough to be worth waking a second thread
 # (measured on 2 cores, passive OpenMP waiting: 2^18 ~25 % slower than 2^20, 2^22 and unchunked ~10 %).
 CANDIDATE_CHUNK = 1 << 20
+# On CUDA, launches and syncs per chunk and per round dominate instead: larger chunks, more DDA steps per
+# round and more rays per traversal (H100, 20k splats, 1M rays: 887 ms with the CPU values, ~130 ms with
+# these; 65k rays: 73 -> 38 ms; `python -m method.splat.bench_ab --trace-sweep`, BENCHMARKS.md). Peak
+# memory grows with the ray chunk: 2^19 rays took 2.6 GiB at 20k splats and 12 GiB at 300k (2^20: 23 GiB).
+CUDA_CANDIDATE_CHUNK = 1 << 24
+STEPS_PER_ROUND = {False: 8, True: 16}  # indexed by "is CUDA"
+RAY_CHUNK = {False: 1 << 17, True: 1 << 19}
 
 
 def _candidates(accel: TraceAccel, b0, nb, recd, max_alpha: float, chunk: int):
@@ -230,7 +237,8 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
     """No-grad traversal: returns the composited hits (ray, splat, alpha) in front-to-back order per ray."""
     dev, dt = origins.device, origins.dtype
     R = origins.shape[0]
-    chunk = CANDIDATE_CHUNK if chunk is None else chunk
+    if chunk is None:
+        chunk = CUDA_CANDIDATE_CHUNK if dev.type == "cuda" else CANDIDATE_CHUNK
     res = torch.tensor(accel.res, device=dev)
     lo, cell = accel.lo, accel.cell
     hi = lo + cell * res.to(dt)
@@ -333,20 +341,25 @@ def _march(accel: TraceAccel, origins, dirs, t_min, T_min: float, max_alpha: flo
 def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
           features: torch.Tensor | None, origins: torch.Tensor, dirs: torch.Tensor,
           t_min: torch.Tensor | float = 0.0, *, alpha_min: float = 0.01, T_min: float = 0.03,
-          max_alpha: float = 0.99, accel: TraceAccel | None = None, steps_per_round: int = 8,
-          ray_chunk: int = 1 << 17):
+          max_alpha: float = 0.99, accel: TraceAccel | None = None, steps_per_round: int | None = None,
+          ray_chunk: int | None = None):
     """Trace R rays; returns (transmittance (R,), composited features (R, C) or None).
 
     ``dirs`` need not be unit length (t is in units of |d|). Pass ``accel`` (TraceAccel.build) to reuse
     the grid across calls; it must have been built from the same splats and opacities with the same
     ``alpha_min``. Differentiable w.r.t. opacities, features and the splat geometry (not the rays).
-    ``ray_chunk`` rays are traversed at a time (peak memory of the traversal scales with it).
+    ``ray_chunk`` rays are traversed at a time (peak memory of the traversal scales with it); it and
+    ``steps_per_round`` (DDA cells per ray per round) default per device (RAY_CHUNK, STEPS_PER_ROUND).
     """
     check_splats(means, quats, scales, opacities, features)
     if origins.dim() != 2 or origins.shape[1] != 3 or dirs.shape != origins.shape:
         raise ValueError(f"origins and dirs must both be (R, 3), got {tuple(origins.shape)}, {tuple(dirs.shape)}")
     R = origins.shape[0]
     dev, dt = means.device, means.dtype
+    steps_per_round = STEPS_PER_ROUND[dev.type == "cuda"] if steps_per_round is None else steps_per_round
+    ray_chunk = RAY_CHUNK[dev.type == "cuda"] if ray_chunk is None else ray_chunk
+    if steps_per_round < 1 or ray_chunk < 1:
+        raise ValueError(f"steps_per_round and ray_chunk must be >= 1, got {steps_per_round}, {ray_chunk}")
     origins, dirs = origins.to(dev, dt), dirs.to(dev, dt)
     tmin = torch.as_tensor(t_min, dtype=dt, device=dev).detach().expand(R).contiguous()
     if accel is None:
