@@ -162,8 +162,8 @@ def _cols(mat, idx: torch.Tensor) -> list[torch.Tensor]:
 # (measured on 2 cores, passive OpenMP waiting: 2^18 ~25 % slower than 2^20, 2^22 and unchunked ~10 %).
 CANDIDATE_CHUNK = 1 << 20
 # On CUDA, launches and syncs per chunk and per round dominate instead: larger chunks, more DDA steps per
-# round and more rays per traversal (H100, 20k splats, 1M rays: 887 ms with the CPU values, ~130 ms with
-# these; 65k rays: 73 -> 38 ms; `python -m method.splat.bench_ab --trace-sweep`, BENCHMARKS.md). Peak
+# round and more rays per traversal (H100, 20k splats, 1M rays: 756-887 ms with the CPU values, 130-170 ms
+# with these; 65k rays: 73 -> 38 ms; `python -m method.splat.bench_ab --trace-sweep`, BENCHMARKS.md). Peak
 # memory grows with the ray chunk: 2^19 rays took 2.6 GiB at 20k splats and 12 GiB at 300k (2^20: 23 GiB).
 CUDA_CANDIDATE_CHUNK = 1 << 24
 STEPS_PER_ROUND = {False: 8, True: 16}  # indexed by "is CUDA"
