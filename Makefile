@@ -47,8 +47,10 @@ demo: setup
 test: setup
 	$(PY) -m pytest $(PYTEST_ARGS)
 
+# BENCH_DEVICE=cuda times the rasterizer and tracer on the GPU (needs a CUDA build of torch: TORCH=...)
+BENCH_DEVICE ?= cpu
 bench: setup
-	$(PY) -m method.splat.bench --out bench/latest.json
+	$(PY) -m method.splat.bench --device $(BENCH_DEVICE) --out $(if $(filter cpu,$(BENCH_DEVICE)),bench/latest.json,bench/latest_$(BENCH_DEVICE).json)
 	$(PY) -m generator bench --out bench/generator.json
 
 clean-venv:
