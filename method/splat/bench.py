@@ -115,6 +115,12 @@ def _sync(dev):
         torch.cuda.synchronize()
 
 
+def raster_loss(out):
+    """A scalar that uses every rasterizer output, so the backward pass covers all of them."""
+    return out.features.sum() + out.depth_expected.sum() * 0.1 + out.distortion.sum() + out.normal.sum() \
+        + (out.normal_from_depth * out.normal).sum()
+
+
 def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_size: int | None = None):
     """Median seconds of rasterize + backward of a loss using every output; also the pair count."""
     from .rasterize import rasterize
@@ -129,9 +135,7 @@ def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_si
         t0 = time.perf_counter()
         c0 = time.process_time()
         out = rasterize(*params, cam, background=torch.ones(3, device=device))
-        loss = out.features.sum() + out.depth_expected.sum() * 0.1 + out.distortion.sum() + out.normal.sum() \
-            + (out.normal_from_depth * out.normal).sum()
-        loss.backward()
+        raster_loss(out).backward()
         _sync(torch.device(device))
         if i >= warmup:
             times.append(time.perf_counter() - t0)

@@ -16,7 +16,7 @@ import torch
 
 from . import rasterize as R
 from . import segments as S
-from .bench import make_scene
+from .bench import _sync as _sync_device, make_scene, raster_loss
 
 
 def _configure(device: str, cuda_choices: bool) -> None:
@@ -29,15 +29,12 @@ def _step(params, cam, device):
     for p in params:
         p.grad = None
     out = R.rasterize(*params, cam, background=torch.ones(3, device=device))
-    loss = out.features.sum() + out.depth_expected.sum() * 0.1 + out.distortion.sum() + out.normal.sum() \
-        + (out.normal_from_depth * out.normal).sum()
-    loss.backward()
+    raster_loss(out).backward()
     return out, [p.grad.clone() for p in params]
 
 
 def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
+    _sync_device(torch.device(device))
 
 
 def compare(size: int, n: int, device: str, rounds: int = 8) -> dict:
