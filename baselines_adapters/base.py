@@ -73,3 +73,30 @@ def save(out_dir: Path, kind: str, stem: str, image: np.ndarray, light: str | No
     else:
         raise ValueError(f"unsupported prediction format {fmt!r}")
     return path
+
+
+# --- external methods that have not been run (appended; the code above is unchanged) ---
+from lumibench.errors import UserError  # noqa: E402
+
+NOT_RUN_PREFIX = "not run: "
+
+
+class MethodNotRun(UserError):
+    """An external method (its code is not ours) has no outputs for this job yet.
+
+    The message is one line, starts with :data:`NOT_RUN_PREFIX` and says what to run and where to put its
+    output so that the adapter finds it. The benchmark shows such a job as "not run", not as a failure:
+    detect it with ``isinstance(exc, MethodNotRun)``, or, from a stored result or a string that crossed a
+    process boundary, with :func:`is_not_run_message`.
+    """
+
+    status = "not_run"
+
+    def __init__(self, message: str):
+        text = " ".join(str(message).split())  # one line, whatever the caller passed
+        super().__init__(text if text.startswith(NOT_RUN_PREFIX) else NOT_RUN_PREFIX + text)
+
+
+def is_not_run_message(text: object) -> bool:
+    """True for the message of a :class:`MethodNotRun` (e.g. a failed result's ``error`` field)."""
+    return isinstance(text, str) and text.startswith(NOT_RUN_PREFIX)

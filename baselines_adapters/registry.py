@@ -36,3 +36,9 @@ def get_adapter(name: str) -> MethodAdapter:
     if not isinstance(adapter, MethodAdapter):
         raise TypeError(f"factory for '{name}' returned {type(adapter).__name__}, not a MethodAdapter")
     return adapter
+
+
+# --- external methods (appended): scored from their own outputs; "not run" until someone runs them ---
+for _name in ("irgs", "r3dgs", "gigs", "lumimotion_official"):
+    register(_name, f"baselines_adapters.external:{_name}")
+del _name

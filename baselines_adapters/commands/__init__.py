@@ -1,0 +1,1 @@
+"""Verbs of ``python -m baselines_adapters`` (one module each: ``register(subparsers)``, ``run(args)``)."""
