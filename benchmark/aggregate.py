@@ -3,6 +3,12 @@
 Failed runs are counted per group (and listed) but never averaged in and never silently dropped: every
 table row and chart says how many runs failed. The std is the population std (numpy's default, ddof=0)
 over all successful (scene, seed) runs of the group.
+
+An external method that has not been run yet (its adapter raised ``baselines_adapters.base.MethodNotRun``)
+is counted as "not run", not as failed: a result with status "not_run", or a failed result whose error
+starts with "not run: " (what the job grid records today from that exception's message).
+Reference rows (the paper's published numbers, :func:`reference_groups`) are separate groups with a
+``reference`` label: they are never averaged with, nor compared against, our runs.
 """
 from __future__ import annotations
 
@@ -86,10 +92,29 @@ class Group:
     failures: list[dict[str, Any]] = field(default_factory=list)
     scenes: set[str] = field(default_factory=set)
     seeds: set[int] = field(default_factory=set)
+    not_run: list[dict[str, Any]] = field(default_factory=list)
+    reference: str | None = None  # e.g. "published, on the paper's dataset": not our runs
+    notes: list[str] = field(default_factory=list)
 
     @property
     def n_failed(self) -> int:
         return len(self.failures)
+
+    @property
+    def n_not_run(self) -> int:
+        return len(self.not_run)
+
+
+NOT_RUN_STATUS = "not_run"
+NOT_RUN_PREFIX = "not run: "  # the message prefix of baselines_adapters.base.MethodNotRun
+
+
+def is_not_run(result: dict[str, Any]) -> bool:
+    """A job whose external method has not been run (shown as "not run", not as a failure)."""
+    if result.get("status") == NOT_RUN_STATUS:
+        return True
+    err = result.get("error")
+    return result.get("status") == "failed" and isinstance(err, str) and err.startswith(NOT_RUN_PREFIX)
 
 
 def configuration_label(result: dict[str, Any]) -> str:
@@ -129,6 +154,9 @@ def aggregate(results: list[dict[str, Any]]) -> list[Group]:
         vals = values.setdefault(key, {})
         g.scenes.add(r["scene"])
         g.seeds.add(r["seed"])
+        if is_not_run(r):
+            g.not_run.append({"scene": r["scene"], "seed": r["seed"], "error": r.get("error")})
+            continue
         if r["status"] != "ok":
             g.failures.append({"scene": r["scene"], "seed": r["seed"], "error": r.get("error")})
             continue
@@ -159,3 +187,22 @@ def best_methods(groups: list[Group], configuration: str, column: Column) -> set
     rounded = [(round(v, column.digits), m) for v, m in cands]  # a tie as displayed is a tie
     best = max(v for v, _ in rounded) if column.higher_better else min(v for v, _ in rounded)
     return {m for v, m in rounded if v == best}
+
+
+def reference_groups(rows: Iterable[Any]) -> list[Group]:
+    """Groups for reference rows (``baselines_adapters.published.PublishedRow`` or alike: ``configuration``,
+    ``display``, ``metrics`` {key: (mean, std)}, ``label``, ``n``). A NaN std means "not published"."""
+    out = []
+    for r in rows:
+        g = Group(r.configuration, r.display, reference=r.label, notes=list(getattr(r, "notes", [])))
+        for key, (mean, std) in r.metrics.items():
+            g.stats[key] = Stat(float(mean), float(std), int(getattr(r, "n", 0)))
+        out.append(g)
+    return out
+
+
+def published_reference(configurations: Any = None, **kwargs: Any) -> list[Group]:
+    """The paper's published rows as reference groups (see ``baselines_adapters.published.published_rows``)."""
+    from baselines_adapters.published import published_rows
+
+    return reference_groups(published_rows(configurations, **kwargs))

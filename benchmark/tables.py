@@ -5,11 +5,18 @@ LPIPS, roughness MSE and the PSNR drop from NVS to relight (percent of the NVS P
 Cells are mean +- std over scenes and seeds; the best mean per configuration and column is bold, in the
 metric's direction; a method without a task shows "–". Every table states its protocol and metric
 configuration, and the number of successful and failed runs per row.
+
+Optional reference rows (``reference=``: groups from ``aggregate.reference_groups``, e.g. the paper's
+published numbers) are listed after our rows of the same configuration, or in their own section when the
+configuration is not ours; they are marked with their label ("published, on the paper's dataset"), show
+their std only where one was published, are never bold and never enter our means. An external method
+that has not been run shows "not run" in the Runs column (and under "Not run"), not as a failure.
 """
 from __future__ import annotations
 
 import csv
 import io
+import math
 from typing import Any, Sequence
 
 from .aggregate import COLUMNS, EXTRA_COLUMNS, SHORT_GROUP, Column, Group, best_methods
@@ -21,13 +28,39 @@ def _configurations(groups: Sequence[Group]) -> list[str]:
     return list(dict.fromkeys(g.configuration for g in groups))
 
 
+def _sections(groups: Sequence[Group], reference: Sequence[Group]) -> list[tuple[str, list[Group], list[Group]]]:
+    """(configuration, our rows, reference rows): our configurations first, then reference-only ones."""
+    confs = _configurations(list(groups) + list(reference))
+    return [(c, [g for g in groups if g.configuration == c], [g for g in reference if g.configuration == c])
+            for c in confs]
+
+
 def _pretty(conf: str) -> str:
     train, test = conf.split("->")
     return f"{train} → {test}"
 
 
 def _runs(g: Group) -> str:
-    return f"{g.n_ok} ok" + (f", {g.n_failed} failed" if g.n_failed else "")
+    if g.reference:
+        return "reference"
+    n_not_run = len(getattr(g, "not_run", ()))
+    if n_not_run and not g.n_ok and not g.n_failed:
+        return "not run"
+    return (f"{g.n_ok} ok" + (f", {g.n_failed} failed" if g.n_failed else "")
+            + (f", {n_not_run} not run" if n_not_run else ""))
+
+
+def _method(g: Group) -> str:
+    return f"{g.method} ({g.reference})" if g.reference else g.method
+
+
+def _cell_text(g: Group, col: Column) -> str | None:
+    """"mean ± std", or the mean alone where a reference row has no published std."""
+    cell = _cell(g, col)
+    if cell is None:
+        return None
+    st = g.stats[col.key]
+    return cell[0] if math.isnan(st.std) else f"{cell[0]} ± {cell[1]}"
 
 
 def _fmt(value: float, digits: int) -> str:
@@ -39,7 +72,7 @@ def _cell(g: Group, col: Column) -> tuple[str, str] | None:
     st = g.stats.get(col.key)
     if st is None:
         return None
-    return _fmt(st.mean, col.digits), _fmt(st.std, col.digits)
+    return _fmt(st.mean, col.digits), (DASH if math.isnan(st.std) else _fmt(st.std, col.digits))
 
 
 def _columns(groups: Sequence[Group]) -> list[Column]:
@@ -48,7 +81,7 @@ def _columns(groups: Sequence[Group]) -> list[Column]:
     return list(COLUMNS) + extra
 
 
-def caption(meta: dict[str, Any], groups: Sequence[Group]) -> str:
+def caption(meta: dict[str, Any], groups: Sequence[Group], reference: Sequence[Group] = ()) -> str:
     mc = meta.get("metric_config") or {}
     weights = (mc.get("lpips_weights") or {}).get("sha256", "?")
     scenes = sorted(set().union(*(g.scenes for g in groups))) if groups else []
@@ -56,28 +89,34 @@ def caption(meta: dict[str, Any], groups: Sequence[Group]) -> str:
     return (f"Protocol: {meta.get('protocol')} ({mc.get('masking', '')}). LPIPS-{mc.get('lpips_net', '?')} "
             f"(weights sha256 {weights[:12]}). Albedo aligned by a per-channel median ratio in linear space. "
             f"Mean ± std over scenes ({', '.join(scenes)}) and seeds ({', '.join(map(str, seeds))}). "
-            f"Best per configuration in bold. ΔPSNR = (NVS PSNR - relight PSNR) / NVS PSNR.")
+            f"Best per configuration in bold. ΔPSNR = (NVS PSNR - relight PSNR) / NVS PSNR."
+            + _reference_note(reference))
 
 
-def markdown(groups: Sequence[Group], meta: dict[str, Any]) -> str:
+def _reference_note(reference: Sequence[Group]) -> str:
+    labels = sorted({g.reference for g in reference if g.reference})
+    return "".join(f" Rows marked \"{label}\" are reference numbers as published (not our runs, not comparable "
+                   f"image for image, never in our means or bold)." for label in labels)
+
+
+def markdown(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[Group] = ()) -> str:
     cols = _columns(groups)
     head = ["Method"] + [f"{SHORT_GROUP.get(c.group, c.group)} {c.label} {'↑' if c.higher_better else '↓'}"
                          for c in cols] + ["Runs"]
-    lines = [f"**{caption(meta, groups)}**", ""]
-    for conf in _configurations(groups):
-        rows = [g for g in groups if g.configuration == conf]
+    lines = [f"**{caption(meta, groups, reference)}**", ""]
+    for conf, rows, refs in _sections(groups, reference):
         bold = {c.key: best_methods(list(groups), conf, c) for c in cols}
-        lines += [f"### {_pretty(conf)}", "", "| " + " | ".join(head) + " |",
+        title = _pretty(conf) + ("" if rows else f" ({', '.join(sorted({g.reference for g in refs}))})")
+        lines += [f"### {title}", "", "| " + " | ".join(head) + " |",
                   "|" + "|".join([":--"] + ["--:"] * (len(cols) + 1)) + "|"]
-        for g in rows:
-            cells = [g.method]
+        for g in rows + refs:
+            cells = [f"*{_method(g)}*" if g.reference else g.method]
             for c in cols:
-                cell = _cell(g, c)
-                if cell is None:
+                text = _cell_text(g, c)
+                if text is None:
                     cells.append(DASH)
                     continue
-                text = f"{cell[0]} ± {cell[1]}"
-                cells.append(f"**{text}**" if g.method in bold[c.key] else text)
+                cells.append(f"**{text}**" if not g.reference and g.method in bold[c.key] else text)
             cells.append(_runs(g))
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
@@ -86,6 +125,16 @@ def markdown(groups: Sequence[Group], meta: dict[str, Any]) -> str:
         lines += ["### Failed runs", ""]
         lines += [f"- {g.method} {_pretty(g.configuration)} {f['scene']} seed {f['seed']}: {f['error']}"
                   for g, f in failed]
+        lines.append("")
+    not_run = [(g, f) for g in groups for f in getattr(g, "not_run", ())]
+    if not_run:
+        lines += ["### Not run", ""]
+        lines += [f"- {g.method} {_pretty(g.configuration)} {f['scene']}: {f['error']}" for g, f in not_run]
+        lines.append("")
+    notes = [(g, n) for g in reference for n in getattr(g, "notes", ())]
+    if notes:
+        lines += ["### Notes on the reference rows", ""]
+        lines += [f"- {g.method} {_pretty(g.configuration)}: {n}" for g, n in notes]
         lines.append("")
     return "\n".join(lines)
 
@@ -98,7 +147,7 @@ def _tex_escape(text: str) -> str:
     return text
 
 
-def latex(groups: Sequence[Group], meta: dict[str, Any]) -> str:
+def latex(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[Group] = ()) -> str:
     cols = _columns(groups)
     spans: list[tuple[str, int]] = []
     for c in cols:
@@ -109,7 +158,7 @@ def latex(groups: Sequence[Group], meta: dict[str, Any]) -> str:
     n = len(cols) + 2
     out = [r"% generated by benchmark/tables.py; needs \usepackage{booktabs}",
            r"\begin{table*}", r"\centering", r"\small",
-           r"\caption{" + _tex_escape(caption(meta, groups)) + "}",
+           r"\caption{" + _tex_escape(caption(meta, groups, reference)) + "}",
            r"\resizebox{\linewidth}{!}{",
            r"\begin{tabular}{l" + "c" * len(cols) + "c}", r"\toprule",
            r"\textbf{Method} & " + " & ".join(rf"\multicolumn{{{k}}}{{c}}{{\textbf{{{_tex_escape(name)}}}}}"
@@ -121,16 +170,18 @@ def latex(groups: Sequence[Group], meta: dict[str, Any]) -> str:
     out.append(" ".join(rules))
     arrows = {True: r"$\uparrow$", False: r"$\downarrow$"}
     out.append(" & " + " & ".join(f"{_tex_escape(c.label)} {arrows[c.higher_better]}" for c in cols) + r" & \\")
-    for conf in _configurations(groups):
+    for conf, rows, refs in _sections(groups, reference):
         bold = {c.key: best_methods(list(groups), conf, c) for c in cols}
         out += [r"\midrule", rf"\multicolumn{{{n}}}{{c}}{{\textbf{{{_tex_escape(_pretty(conf))}}}}} \\", r"\midrule"]
-        for g in [g for g in groups if g.configuration == conf]:
-            cells = [_tex_escape(g.method)]
+        for g in rows + refs:
+            cells = [rf"\textit{{{_tex_escape(_method(g))}}}" if g.reference else _tex_escape(g.method)]
             for c in cols:
                 cell = _cell(g, c)
                 if cell is None:
                     cells.append("--")
-                elif g.method in bold[c.key]:
+                elif g.reference and math.isnan(g.stats[c.key].std):
+                    cells.append(rf"${cell[0]}$")
+                elif not g.reference and g.method in bold[c.key]:
                     cells.append(rf"$\mathbf{{{cell[0]}}} \pm {cell[1]}$")
                 else:
                     cells.append(rf"${cell[0]} \pm {cell[1]}$")
@@ -140,8 +191,10 @@ def latex(groups: Sequence[Group], meta: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
-def csv_text(groups: Sequence[Group], meta: dict[str, Any]) -> str:
-    """One row per (configuration, method): means, stds and counts, machine-readable (no bold)."""
+def csv_text(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[Group] = ()) -> str:
+    """One row per (configuration, method): means, stds and counts, machine-readable (no bold).
+
+    With reference rows, a last column "reference" holds their label (empty for our rows)."""
     cols = list(COLUMNS) + list(EXTRA_COLUMNS)
     extra = ("time.seconds", "model.gaussians")
     buf = io.StringIO()
@@ -149,11 +202,15 @@ def csv_text(groups: Sequence[Group], meta: dict[str, Any]) -> str:
     header = ["protocol", "configuration", "method", "n_ok", "n_failed"]
     for key in [c.key for c in cols] + list(extra):
         header += [f"{key}.mean", f"{key}.std", f"{key}.n"]
-    w.writerow(header)
-    for g in groups:
-        row: list[Any] = [meta.get("protocol"), g.configuration, g.method, g.n_ok, g.n_failed]
+    w.writerow(header + (["reference"] if reference else []))
+    for g in list(groups) + list(reference):
+        row: list[Any] = [meta.get("protocol") if not g.reference else "", g.configuration, g.method, g.n_ok,
+                          g.n_failed]
         for key in [c.key for c in cols] + list(extra):
             st = g.stats.get(key)
-            row += [f"{st.mean:.6g}", f"{st.std:.6g}", st.n] if st else ["", "", 0]
-        w.writerow(row)
+            if st is None:
+                row += ["", "", 0]
+            else:
+                row += [f"{st.mean:.6g}", "" if math.isnan(st.std) else f"{st.std:.6g}", st.n]
+        w.writerow(row + ([g.reference or ""] if reference else []))
     return buf.getvalue()
