@@ -10,7 +10,13 @@ fact below was read from those loaders (each method module names the file and co
           file_path is a BARE name (no split folder, no extension): the GT look-ups match the file
           name by prefix or substring in flat folders, which fails on "test/r_0000"
       <light>/r_NNNN.png                      FLAT per light: train and test views, RGBA, alpha = coverage
-      albedo/r_NNNN.png  roughness/r_NNNN.png FLAT ground truth (albedo sRGB, roughness linear as RGB)
+      albedo/r_NNNN0001.png                   FLAT GT albedo (sRGB), ONE file per view, named with a suffix
+                                              after the stem (like the paper's Blender outputs r_NNNN<frame>):
+                                              GI-GS's find_matching_file skips "r_NNNN.png" itself, IRGS and
+                                              GI-GS take the first name starting with the stem, LumiMotion and
+                                              R-3DGS the first containing it
+      roughness/r_NNNN.png, roughness/r_NNNN0001.png   FLAT GT roughness (linear, as RGB): LumiMotion reads
+                                              r_<4 digits>.png, IRGS the albedo file's name
       normal/r_NNNN.png                       world normals (n + 1) / 2 (no loader needs them; for viewing)
       <light>.hdr                             the 32 x 16 env maps, named like the light folders
       lumibench_export.json                   our manifest: where each exported name comes from
@@ -43,6 +49,7 @@ from ..base import MethodAdapter, MethodNotRun, save
 
 EXPORT_FORMAT = "lumibench-external-export"
 MANIFEST = "lumibench_export.json"
+GT_SUFFIX = "0001"  # albedo/<name>0001.png: see the module docstring
 _STATIC_RE = re.compile(r"^(?P<base>.+)_statictimestep(?P<t>\d+)$")
 RUNS_ENV = "LUMIBENCH_EXTERNAL_RUNS"
 
@@ -143,11 +150,13 @@ def _export_variant(src: Path, dst: Path, names: SceneNames) -> int:
                 if lit.is_file():
                     _copy(lit, dst / light / f"{name}.png")
                     files += 1
-            for kind in ("albedo", "roughness", "normal"):
+            targets = {"albedo": [f"{name}{GT_SUFFIX}"], "roughness": [name, f"{name}{GT_SUFFIX}"], "normal": [name]}
+            for kind, stems in targets.items():
                 gt = layout.gt_path(src, kind, f.file_path)
                 if gt.is_file():
-                    (_write_rgb if kind == "roughness" else _copy)(gt, dst / kind / f"{name}.png")
-                    files += 1
+                    for stem in stems:
+                        (_write_rgb if kind == "roughness" else _copy)(gt, dst / kind / f"{stem}.png")
+                        files += 1
                 elif split == "test" and kind != "normal":
                     raise UserError(f"missing ground truth {gt} (the external evaluation scripts need it)")
         atomic_write_json(dst / f"transforms_{split}.json", {"camera_angle_x": tr.camera_angle_x, "frames": frames})
@@ -401,7 +410,9 @@ def import_run(spec: ExternalMethod, imp: Importer, run_dir: Path, test_lights: 
     """Import one model dir; ``test_lights``: the lights its relit outputs are under (empty: all it names)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise UserError(f"{spec.name} output dir not found: {run_dir}")
+        raise MethodNotRun(f"{spec.title} ({spec.name}) output dir {run_dir} does not exist: export the scene "
+                           f"with 'python -m baselines_adapters export {spec.name} --data <scene> --out EXPORT', "
+                           f"run the printed commands with their model dir at {run_dir}, then import again")
     for light in test_lights:
         if light not in imp.names.lights:
             raise UserError(f"unknown test light '{light}' for {imp.names.scene} "
@@ -409,8 +420,9 @@ def import_run(spec: ExternalMethod, imp: Importer, run_dir: Path, test_lights: 
     before = dict(imp.written)
     info = spec.import_outputs(imp, run_dir, test_lights, **options) or {}
     if imp.written == before:
-        raise UserError(f"no {spec.title} outputs found under {run_dir} (see 'python -m baselines_adapters "
-                        f"export {spec.name} --help' for what its scripts write)")
+        raise MethodNotRun(f"no {spec.title} ({spec.name}) outputs under {run_dir}: run its render and evaluation "
+                           f"commands (printed by 'python -m baselines_adapters export {spec.name} ...', README "
+                           f"'External methods') with that model dir, then import again")
     relit = sorted(k.split("/", 1)[1] for k in imp.written if k.startswith("relight/"))
     return {"source": str(run_dir), "repo": f"{spec.repo}@{spec.commit}", "kinds": dict(imp.written),
             "relit_lights": relit, **info}

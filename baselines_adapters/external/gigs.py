@@ -8,8 +8,9 @@ github.com/stopaimme/GI-GS-official-implementation @ 9e75c82674726178e955dd3e6c4
   ``frames[].file_path``, ``frames[].transform_matrix``; the image is
   ``<source>/$DATA_SUBDIR/<basename(file_path)>.png`` (RGBA); ``image_name`` = the file stem; test cameras
   are never shuffled.
-* ``render.py`` (``--brdf_eval``): GT albedo from FLAT ``<source>/albedo/`` by file-name prefix (a bare
-  ``file_path``), the mask from ``<source>/$DATA_SUBDIR/<file_path>.png``'s alpha; predictions read from
+* ``render.py`` (``--brdf_eval``): GT albedo from FLAT ``<source>/albedo/`` by ``find_matching_file``: the
+  first name that starts with ``file_path`` and is NOT ``<file_path>.png`` itself (so the export names it
+  ``<name>0001.png``, like the paper's Blender outputs), the mask from ``<source>/$DATA_SUBDIR/<file_path>.png``'s alpha; predictions read from
   ``<model>/test/ours_<iter>/pbr/<file_path>_albedo.png`` (LINEAR, compared with linearised GT).
   With ``--pbr`` it writes ``pbr/<name>.png`` (NVS under the train light, sRGB), ``pbr/<name>_albedo.png``
   (linear), ``pbr/<name>_roughness.png`` (linear); ``<iter>`` is ``None`` when loading ``--checkpoint``.

@@ -10,8 +10,9 @@ github.com/fudan-zvg/IRGS @ 1461869c0da84f26aebd8bb6d1caaa8a7bd91326:
   ``<source>/$DATA_SUBDIR/<basename(file_path)>.png`` (RGBA; alpha > 0.5 is the mask). Frames are read
   in file order, the Scene is built with ``shuffle=False`` for rendering.
 * ``eval_material_syn4.py`` / ``compute_albedo_scale_syn4.py``: ground truth in FLAT ``albedo/`` and
-  ``roughness/``, found by ``f.startswith(splitext(file_path)[0])`` -> ``file_path`` must be a bare name;
-  the roughness PNG must have channels (``[..., :1]`` of an H x W x C array); GT and masks are resized to
+  ``roughness/``, found by ``f.startswith(splitext(file_path)[0])`` (the first in ``os.listdir`` order,
+  so one albedo file per view) -> ``file_path`` must be a bare name; roughness is read under the albedo
+  file's name and must have channels (``[..., :1]`` of an H x W x C array); GT and masks are resized to
   400 x 400 (hard-coded).
 * ``eval_relighting_syn4.py``: env map from ``$MAP_PATH``, GT from ``<source>/$MAP_NAME/<name>.png``; writes
   ``<model>/test_lg0_rli_<MAP_NAME>[_<extra>]/env6/render/<idx>.png`` (sRGB, 400 x 400, idx = frame order).
