@@ -40,5 +40,5 @@ def get_adapter(name: str) -> MethodAdapter:
 
 # --- external methods (appended): scored from their own outputs; "not run" until someone runs them ---
 for _name in ("irgs", "r3dgs", "gigs", "lumimotion_official"):
-    register(_name, f"baselines_adapters.external:{_name}")
+    register(_name, f"baselines_adapters.external:{_name}_adapter")
 del _name

@@ -29,17 +29,18 @@ def adapter(name: str) -> ExternalAdapter:
     return ExternalAdapter(get_method(name))
 
 
-def irgs() -> ExternalAdapter:
+# zero-argument factories for the registry (not named like the submodules, which would shadow them)
+def irgs_adapter() -> ExternalAdapter:
     return adapter("irgs")
 
 
-def r3dgs() -> ExternalAdapter:
+def r3dgs_adapter() -> ExternalAdapter:
     return adapter("r3dgs")
 
 
-def gigs() -> ExternalAdapter:
+def gigs_adapter() -> ExternalAdapter:
     return adapter("gigs")
 
 
-def lumimotion_official() -> ExternalAdapter:
+def lumimotion_official_adapter() -> ExternalAdapter:
     return adapter("lumimotion_official")
