@@ -390,7 +390,8 @@ class ExternalAdapter(MethodAdapter):
             f"--data {scene_dir} --out EXPORT --train-light {train_light} --test-light {test}', train and "
             f"evaluate it as printed (README 'External methods') with its model dir at {where} "
             f"(or ${RUNS_ENV}/{self.name}/...), or import by hand: python -m baselines_adapters import "
-            f"{self.name} --from {where} --data {scene_dir} --out PRED")
+            f"{self.name} --from {where} --data {scene_dir}"
+            + ("" if self.spec.relight_names_light else f" --test-light {test}") + " --out PRED")
 
     def predict(self, scene_dir, train_light, test_lights, seed, profile, out_dir, runs_dir):
         dirs = self.run_dirs(scene_dir, train_light, test_lights, runs_dir)
@@ -401,7 +402,6 @@ class ExternalAdapter(MethodAdapter):
         extra: dict[str, Any] = {"device": "external", "external": {}}
         for test, run_dir in dirs.items():  # materials and NVS: the last dir wins (same training)
             extra["external"][test] = import_run(self.spec, Importer(names, Path(out_dir)), run_dir, [test])
-        extra["timings"] = {}
         return extra
 
 
