@@ -19,9 +19,10 @@ EXECUTOR ?= local
 PYTEST_ARGS ?=
 
 STAMP := $(VENV)/.lumibench-setup
+# torch on shared CPUs: active OpenMP waiting made 2 threads ~15x slower under load (method training, measured)
+export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: setup dataset eval demo test bench clean-venv
-# `make train` arrives with the method (stage 1 and stage 2 of LumiMotion).
+.PHONY: setup dataset train eval demo test bench clean-venv
 
 setup: $(STAMP)
 
@@ -37,6 +38,16 @@ $(STAMP): pyproject.toml Makefile
 
 dataset: setup
 	$(PY) -m generator dataset --profile $(PROFILE) --data $(DATA) --jobs $(JOBS) $(if $(SCENES),--scenes $(SCENES),) $(if $(LIGHTS),--lights $(LIGHTS),)
+
+SCENE ?=
+LIGHT ?= city
+STAGE ?= 1
+SEED ?= 0
+DEVICE ?= cpu
+OVERRIDES ?=
+train: setup
+	@test -n "$(SCENE)" || { echo "error: make train needs SCENE=<name> (e.g. make train SCENE=spheres)" >&2; exit 2; }
+	$(PY) -m method train --scene $(SCENE) --light $(LIGHT) --profile $(PROFILE) --stage $(STAGE) --seed $(SEED) --device $(DEVICE) --data $(DATA) --runs $(RUNS) $(if $(RESUME),--resume,) $(OVERRIDES)
 
 eval: setup
 	$(PY) -m benchmark eval --profile $(PROFILE) --data $(DATA) --runs $(RUNS) --results $(RESULTS) --executor $(EXECUTOR) --jobs $(JOBS) $(if $(METHODS),--methods $(METHODS),)

@@ -6,7 +6,11 @@ from typing import Callable, Sequence
 
 
 class UserError(Exception):
-    """A mistake in what the user asked for or supplied (unknown name, bad YAML, missing file)."""
+    """A mistake in what the user asked for or supplied (unknown name, bad YAML, missing file).
+
+    Subclasses may set another ``exit_code`` (a diverged training exits 3, still with one line)."""
+
+    exit_code = 2
 
 
 EXIT_USER_ERROR = 2
@@ -18,7 +22,7 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[s
         rc = main(argv)
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_USER_ERROR
+        return int(getattr(exc, "exit_code", EXIT_USER_ERROR))
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

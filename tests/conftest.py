@@ -1,6 +1,11 @@
 """Shared fixtures: one rendered ci dataset per test session (generator, benchmark and method tests reuse it)."""
 from __future__ import annotations
 
+import os
+
+# before torch loads: active OpenMP waiting made 2 torch threads ~15x slower on a busy 2-core box
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 from pathlib import Path
 
 import pytest

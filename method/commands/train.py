@@ -1,0 +1,75 @@
+"""`python -m method train` (`make train`): stage 1 (and stage 2 once it exists) of one scene and light."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train LumiMotion on one scene under one light",
+                       description="Train LumiMotion on DATA/PROFILE/SCENE under the light LIGHT into "
+                                   "RUNS/PROFILE/NAME/SCENE/LIGHT/seedK/ (checkpoints, logs, timings, renders). "
+                                   "Any configuration key can be overridden: stage1.iterations=500.")
+    p.add_argument("--scene", required=True, help="scene name under DATA/PROFILE, or a scene directory")
+    p.add_argument("--light", default="city", help="training light (default city)")
+    p.add_argument("--profile", default="ci", help="effort profile: ci, small, full (default ci)")
+    p.add_argument("--stage", default="1", choices=["1", "2", "all"], help="stage to train (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--data", default="data", help="dataset root (default data)")
+    p.add_argument("--runs", default="runs", help="runs root (default runs)")
+    p.add_argument("--run-dir", default=None, help="explicit run directory (overrides --runs/--name)")
+    p.add_argument("--name", default=None, help="method name in the run path (default lumimotion; static with --static)")
+    p.add_argument("--static", action="store_true", help="no deformation network (the static pipeline)")
+    p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="configuration overrides, e.g. stage1.iterations=500")
+
+
+def resolve_scene(data: str, profile: str, scene: str) -> Path:
+    from lumibench import layout
+    from lumibench.errors import UserError
+
+    as_path = Path(scene)
+    if as_path.is_dir() and (as_path / "transforms_train.json").is_file():
+        return as_path
+    d = layout.scene_dir(data, profile, scene)
+    if not d.is_dir():
+        root = Path(data) / profile
+        have = sorted(p.name for p in root.iterdir() if (p / "transforms_train.json").is_file()) if root.is_dir() else []
+        raise UserError(f"unknown scene '{scene}': no {d} (rendered under {root}: {', '.join(have) or 'none'}; "
+                        f"render it with `make dataset PROFILE={profile} SCENES={scene}`)")
+    return d
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from lumibench.errors import UserError
+    from method.config import load_method_config
+    from method.train import default_run_dir, train_stage1
+
+    if args.device not in ("cpu", "cuda") and not str(args.device).startswith("cuda:"):
+        raise UserError(f"--device must be cpu or cuda, got {args.device!r}")
+    cfg = load_method_config(args.profile, args.overrides)
+    scene_dir = resolve_scene(args.data, args.profile, args.scene)
+    name = args.name or ("static" if args.static else "lumimotion")
+    run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(args.runs, args.profile, name, scene_dir.name,
+                                                                       args.light, args.seed)
+    if args.stage in ("2",):
+        raise UserError("stage 2 is not available yet in this version (train stage 1: --stage 1)")
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    metrics = train_stage1(scene_dir, args.light, run_dir, cfg, seed=args.seed, device=args.device,
+                           static=True if args.static else None, resume=args.resume, progress=not args.no_progress)
+    test = metrics.get("test", {})
+    sep = metrics.get("separation")
+    print(f"run:         {run_dir}")
+    if test:
+        print(f"test views:  PSNR {test['psnr']:.2f} dB  SSIM {test['ssim']:.3f}  LPIPS {test['lpips_vgg']:.3f}")
+    if sep:
+        print(f"separation:  dynamic {sep['dynamic_recall']:.3f}  static {sep['static_recall']:.3f}")
+    print(f"model:       {metrics['gaussians']} Gaussians, {metrics['parameters']} parameters, "
+          f"{metrics['seconds']:.1f} s")
+    if metrics.get("sheet"):
+        print(f"sheet:       {metrics['sheet']}")
+    return 0

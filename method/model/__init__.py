@@ -1,0 +1,1 @@
+"""LumiMotion's model: canonical 2D Gaussians with density control, and the deformation network."""

@@ -1,0 +1,74 @@
+"""The deformation network and the static/dynamic variable P (paper section "Stage 1").
+
+MLP(enc(mu), timenet(enc(t))) -> (d mu, d r, d c); mu' = mu + P d mu, r' = r + P d r, c' = c (1 - d c)
+with d c clamped to <= 1 (no activation). The heads start at zero, so an untrained network leaves
+every Gaussian at its canonical state (and the dynamic model equals the static one).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
+    """[x, sin(2^k x), cos(2^k x)] for k < freqs (NeRF / Deformable 3DGS; no pi factor)."""
+    parts = [x]
+    for k in range(freqs):
+        s = x * (2.0 ** k)
+        parts += [torch.sin(s), torch.cos(s)]
+    return torch.cat(parts, -1)
+
+
+class DeformNet(nn.Module):
+    def __init__(self, depth: int = 8, width: int = 256, skip: int = 4, pos_freqs: int = 10, time_freqs: int = 6,
+                 time_net_width: int = 256, time_net_out: int = 30):
+        super().__init__()
+        self.pos_freqs, self.time_freqs, self.skip = pos_freqs, time_freqs, skip
+        pos_dim = 3 * (1 + 2 * pos_freqs)
+        t_dim = 1 + 2 * time_freqs
+        self.time_net = nn.Sequential(nn.Linear(t_dim, time_net_width), nn.ReLU(), nn.Linear(time_net_width, time_net_out))
+        in_dim = pos_dim + time_net_out
+        layers = []
+        for i in range(depth):
+            d_in = in_dim if i == 0 else width + (in_dim if skip and i == skip else 0)
+            layers.append(nn.Linear(d_in, width))
+        self.layers = nn.ModuleList(layers)
+        self.d_mu = nn.Linear(width, 3)
+        self.d_rot = nn.Linear(width, 4)
+        self.d_col = nn.Linear(width, 3)
+        for head in (self.d_mu, self.d_rot, self.d_col):
+            nn.init.zeros_(head.weight)
+            nn.init.zeros_(head.bias)
+
+    def forward(self, x_norm: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``x_norm``: canonical positions mapped to about [-1, 1] (scene box); ``t`` in [0, 1]."""
+        tt = torch.full((1, 1), float(t), dtype=x_norm.dtype, device=x_norm.device)
+        tfeat = self.time_net(positional_encoding(tt, self.time_freqs)).expand(x_norm.shape[0], -1)
+        inp = torch.cat([positional_encoding(x_norm, self.pos_freqs), tfeat], -1)
+        h = inp
+        for i, layer in enumerate(self.layers):
+            if self.skip and i == self.skip:
+                h = torch.cat([h, inp], -1)
+            h = torch.relu(layer(h))
+        return self.d_mu(h), self.d_rot(h), torch.clamp_max(self.d_col(h), 1.0)
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+
+def binary_concrete(logits: torch.Tensor, temperature: float, generator: torch.Generator | None = None,
+                    training: bool = True) -> torch.Tensor:
+    """P = sigmoid((logit + log u - log(1 - u)) / T), u ~ U(0, 1) in training and u = 0.5 at inference
+    (the logistic noise vanishes, P = sigmoid(logit / T))."""
+    if not training:
+        return torch.sigmoid(logits / temperature)
+    u = torch.rand(logits.shape, generator=generator, dtype=logits.dtype).to(logits.device)
+    u = u.clamp(1e-6, 1 - 1e-6)
+    return torch.sigmoid((logits + torch.log(u) - torch.log1p(-u)) / temperature)
+
+
+def logit_for_probability(p: float, temperature: float) -> float:
+    """The logit whose inference P equals ``p``."""
+    return temperature * math.log(p / (1 - p))

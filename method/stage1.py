@@ -1,0 +1,112 @@
+"""Stage 1: the dynamic 2D Gaussian model rendered at a time, and its loss (paper section "Stage 1").
+
+``DynamicScene`` bundles the canonical Gaussians, the deformation network (None for the static
+pipeline), and the scene box that normalises positions for the network's encoding.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from method import losses
+from method.model.deform import DeformNet, binary_concrete
+from method.model.gaussians import Gaussians
+from method.splat.camera import Camera
+from method.splat.rasterize import RasterOutput, rasterize
+
+
+@dataclass
+class Deformed:
+    """The Gaussians at one time: what the rasterizer and the tracer consume, plus the deltas."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    colours: torch.Tensor
+    p: torch.Tensor          # the P used (sampled in training, u = 0.5 at inference; ones in warm-up)
+    d_mu: torch.Tensor
+    d_col: torch.Tensor
+
+
+class DynamicScene:
+    def __init__(self, gaussians: Gaussians, net: DeformNet | None, center: torch.Tensor, extent: float,
+                 temperature: float = 0.5):
+        self.g = gaussians
+        self.net = net
+        self.center = center
+        self.extent = float(extent)
+        self.temperature = float(temperature)
+
+    @property
+    def static(self) -> bool:
+        return self.net is None
+
+    def p_inference(self) -> torch.Tensor:
+        return binary_concrete(self.g.t["p_logit"], self.temperature, training=False)
+
+    def deform(self, t: float, *, p_mode: str = "inference", generator: torch.Generator | None = None,
+               fixed_p: float | None = None) -> Deformed:
+        """Gaussians at time ``t``. ``p_mode``: "sample" (training), "inference" (u = 0.5), "ones" (warm-up)."""
+        g = self.g
+        means, quats, colours = g.means, g.quats, g.colours
+        n = len(g)
+        if self.net is None:
+            zero = means.new_zeros(n, 3)
+            return Deformed(means, quats, g.scales, g.opacities, colours, means.new_zeros(n), zero, zero)
+        if fixed_p is not None:
+            p = means.new_full((n,), float(fixed_p))
+        elif p_mode == "sample":
+            p = binary_concrete(g.t["p_logit"], self.temperature, generator, training=True)
+        elif p_mode == "ones":
+            p = means.new_ones(n)
+        else:
+            p = self.p_inference()
+        x = (means - self.center.to(means)) / self.extent
+        d_mu, d_rot, d_col = self.net(x, t)
+        pc = p[:, None]
+        return Deformed(means + pc * d_mu, quats + pc * d_rot, g.scales, g.opacities, colours * (1.0 - d_col),
+                        p, d_mu, d_col)
+
+    def num_parameters(self) -> int:
+        return self.g.num_parameters() + (self.net.num_parameters() if self.net is not None else 0)
+
+
+def render(d: Deformed, camera: Camera, background: torch.Tensor, screen_offsets: torch.Tensor | None = None,
+           extra: torch.Tensor | None = None) -> RasterOutput:
+    """Rasterize colour and P (channel 3) plus optional extra features; the background fills colour only."""
+    feats = [d.colours, d.p[:, None]] + ([extra] if extra is not None else [])
+    f = torch.cat(feats, 1)
+    bg = torch.cat([background.to(f), f.new_zeros(f.shape[1] - 3)])
+    return rasterize(d.means, d.quats, d.scales, d.opacities, f, camera, bg, screen_offsets=screen_offsets)
+
+
+def stage1_loss(out: RasterOutput, d: Deformed, rgb_gt: torch.Tensor, alpha_gt: torch.Tensor, cfg: dict,
+                iteration: int, warmup: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The weighted sum of the stage-1 terms and each term (unweighted) for the log."""
+    s = cfg
+    img = out.features[..., :3]
+    lc, l1 = losses.colour_loss(img, rgb_gt, s["lambda_dssim"])
+    terms = {"l_c": lc, "l1": l1}
+    total = lc
+    if s["lambda_normal"] > 0 and iteration >= s["normal_from"]:
+        terms["normal"] = losses.normal_consistency(out.normal, out.normal_from_depth, out.alpha)
+        total = total + s["lambda_normal"] * terms["normal"]
+    if s["lambda_distortion"] > 0 and iteration >= s["distortion_from"]:
+        terms["distortion"] = out.distortion.mean()
+        total = total + s["lambda_distortion"] * terms["distortion"]
+    if s["lambda_mask"] > 0:
+        terms["mask"] = losses.mask_bce(out.alpha, alpha_gt)
+        total = total + s["lambda_mask"] * terms["mask"]
+    if d.d_mu.requires_grad or d.p.requires_grad:  # the dynamic terms (absent in the static pipeline)
+        if not warmup and s["lambda_p"] > 0:
+            terms["p"] = losses.p_l1(d.p)
+            total = total + s["lambda_p"] * terms["p"]
+        if s["lambda_dc"] > 0:
+            terms["dc"] = losses.mean_sq_norm(d.d_col)
+            total = total + s["lambda_dc"] * terms["dc"]
+        if s["lambda_dmu"] > 0:
+            terms["dmu"] = losses.mean_sq_norm(d.d_mu)
+            total = total + s["lambda_dmu"] * terms["dmu"]
+    return total, terms
