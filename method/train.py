@@ -230,6 +230,8 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
     if existing and not resume:
         raise UserError(f"{run_dir} already has stage-1 checkpoints: pass --resume to continue it, or choose "
                         f"another run directory (--run-dir) or seed")
+    if resume and not existing:
+        raise UserError(f"no stage-1 checkpoint to resume in {run_dir} (train without --resume to start it)")
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -262,6 +264,11 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
     log_path = run_dir / "log_stage1.jsonl"
     if start_it == 0:
         log_path.unlink(missing_ok=True)
+        if s["eval_every"]:
+            first = evaluate_test(scene, data)  # the baseline the learning curve starts from
+            if first is not None:
+                with open(log_path, "a") as fh:
+                    fh.write(json.dumps({"iteration": 0, "test_psnr": first, "gaussians": len(scene.g)}) + "\n")
     H, W = data.resolution
     n_views = len(data.train)
     t0 = time.perf_counter()

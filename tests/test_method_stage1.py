@@ -166,3 +166,166 @@ def test_zeroed_network_equals_the_static_model():
     _randomise_heads(dyn.net)
     r1 = render(dyn.deform(0.6, fixed_p=1.0), cam, bg)
     assert not torch.allclose(r1.features[..., :3], render(sta.deform(0.6), cam, bg).features[..., :3])
+
+
+# ------------------------------------------------------------------------------------------- loader
+
+def _write_rgba(path: Path, rgb, alpha):
+    from lumibench.io import write_png
+
+    img = np.concatenate([np.broadcast_to(np.asarray(rgb, np.float32), alpha.shape + (3,)), alpha[..., None]], -1)
+    write_png(path, img)
+
+
+def test_loader_reads_the_authors_layout(tmp_path):
+    """Their released scenes: './train/r_N' unpadded paths listed out of order, no dataset.json."""
+    from method.data import load_scene
+
+    scene = tmp_path / "theirs"
+    c2w = np.eye(4)
+    c2w[2, 3] = 4.0  # OpenGL camera at +z looking down -z
+    frames = []
+    for i in (10, 2, 0):  # r_10 after r_2 numerically, not lexically
+        frames.append({"file_path": f"./train/r_{i}", "time": i / 10, "transform_matrix": c2w.tolist()})
+        alpha = np.zeros((8, 8), np.float32)
+        alpha[2:6, 2:6] = 1.0
+        _write_rgba(scene / "golden_bay" / "train" / f"r_{i}.png", [i / 10, 0.5, 0.25], alpha)
+    (scene / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.69, "frames": frames}))
+    data = load_scene(scene, "golden_bay", background=(0.0, 0.0, 1.0))
+    assert [v.stem for v in data.train] == ["r_0", "r_2", "r_10"]
+    assert [v.time for v in data.train] == [0.0, 0.2, 1.0]
+    v = data.train[2]
+    np.testing.assert_allclose(v.rgb[3, 3].numpy(), [1.0, 0.5, 0.25], atol=1 / 255)  # foreground
+    np.testing.assert_allclose(v.rgb[0, 0].numpy(), [0.0, 0.0, 1.0], atol=1e-6)      # on the background
+    assert float(v.alpha.sum()) == 16.0
+    assert not data.static and data.test == []
+
+
+def test_static_variant_is_detected(ci_dataset):
+    from method.data import load_scene
+
+    static_dir = next(ci_dataset.parent.glob(f"{ci_dataset.name}_statictimestep*"))
+    assert load_scene(static_dir, "city", load_test=False).static
+    assert not load_scene(ci_dataset, "city", load_test=False).static
+
+
+# ------------------------------------------------------------------------------------ training loop
+
+TINY = ["stage1.iterations=24", "stage1.init_points=400", "stage1.max_gaussians=700", "stage1.warmup=6",
+        "stage1.densify_from=4", "stage1.densify_until=20", "stage1.densify_every=4", "stage1.checkpoint_every=12",
+        "stage1.eval_every=0", "stage1.log_every=4", "stage1.normal_from=8", "stage1.distortion_from=8",
+        "stage1.opacity_reset_every=16", "stage1.densify_grad_threshold=1.0e-5"]
+
+
+def _cfg(extra=()):
+    from method.config import load_method_config
+
+    return load_method_config("ci", TINY + list(extra))
+
+
+def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path):
+    from method.train import checkpoint_paths, load_checkpoint, train_stage1
+
+    torch.set_num_threads(1)
+    full = tmp_path / "full"
+    train_stage1(ci_dataset, "city", full, _cfg(), seed=3, progress=False, write_outputs=False)
+    cks = checkpoint_paths(full)
+    assert [i for i, _ in cks] == [12, 24]
+    # the interrupted run: the same directory as it was at iteration 12, then --resume
+    part = tmp_path / "part"
+    shutil.copytree(full, part)
+    (part / "checkpoints" / "stage1_000024.pt").unlink()
+    train_stage1(ci_dataset, "city", part, _cfg(), seed=3, resume=True, progress=False, write_outputs=False)
+    a = load_checkpoint(full / "checkpoints" / "stage1_000024.pt", "cpu")
+    b = load_checkpoint(part / "checkpoints" / "stage1_000024.pt", "cpu")
+    assert a["gaussians"]["means"].shape == b["gaussians"]["means"].shape
+    assert a["gaussians"]["means"].shape[0] != 400  # density control ran (the state it carries matters)
+    for k in a["gaussians"]:
+        assert torch.equal(a["gaussians"][k], b["gaussians"][k]), k
+    for k in a["net"]:
+        assert torch.equal(a["net"][k], b["net"][k]), k
+    # a fresh run with another seed differs (so equality above is not vacuous)
+    other = tmp_path / "other"
+    train_stage1(ci_dataset, "city", other, _cfg(), seed=4, progress=False, write_outputs=False)
+    c = load_checkpoint(other / "checkpoints" / "stage1_000024.pt", "cpu")
+    assert not torch.equal(a["gaussians"]["colour_logit"][:100], c["gaussians"]["colour_logit"][:100])
+
+
+def test_nan_guard_stops_names_the_term_and_keeps_the_checkpoint(ci_dataset, tmp_path, monkeypatch, capsys):
+    from method.__main__ import main
+
+    calls = {"n": 0}
+    real = losses.mask_bce
+
+    def poisoned(alpha, mask, eps=1e-6):
+        calls["n"] += 1
+        out = real(alpha, mask, eps)
+        return out * float("nan") if calls["n"] == 15 else out
+
+    monkeypatch.setattr(losses, "mask_bce", poisoned)
+    run = tmp_path / "run"
+    rc = main(["train", "--scene", str(ci_dataset), "--run-dir", str(run), "--no-progress"] + TINY)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 3
+    assert len(err) == 1 and "iteration 15" in err[0] and "'mask'" in err[0], err
+    record = json.loads((run / "failure.json").read_text())
+    assert record["status"] == "failed" and record["iteration"] == 15 and "mask" in record["term"]
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["stage1_000012.pt"]
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--scene", "no_such_scene"], "unknown scene 'no_such_scene'"),
+    (["--light", "moonlight"], "unknown light 'moonlight'"),
+    (["stage1.iterationz=5"], "unknown key 'stage1.iterationz'"),
+    (["stage1.iterations=many"], "key 'stage1.iterations' must be an integer"),
+    (["--profile", "huge"], "unknown profile 'huge'"),
+    (["--resume"], "no stage-1 checkpoint to resume"),
+])
+def test_bad_input_is_one_line_exit_2(ci_dataset, tmp_path, capsys, argv, needle):
+    from method.__main__ import main
+
+    base = {"--scene": str(ci_dataset), "--light": "city", "--profile": "ci"}
+    args = ["train", "--run-dir", str(tmp_path / "r"), "--data", str(ci_dataset.parent.parent), "--no-progress"]
+    for k, v in base.items():
+        if k not in argv:
+            args += [k, v]
+    rc = main(args + argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and needle in err[0], err
+
+
+def test_existing_run_needs_resume(ci_dataset, tmp_path, capsys):
+    from method.__main__ import main
+
+    args = ["train", "--scene", str(ci_dataset), "--run-dir", str(tmp_path / "r"), "--no-progress"] + TINY[:1] + \
+        ["stage1.iterations=2", "stage1.checkpoint_every=1", "stage1.init_points=100", "stage1.max_gaussians=0"]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(args) == 2
+    assert "--resume" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_ci_run_of_spheres_learns(ci_dataset, tmp_path):
+    """The whole ci profile (what `make train` and `make demo` run): test PSNR rises clearly above the
+    first evaluation, every output is written, and the P maps cover the training views."""
+    from method.config import load_method_config
+    from method.train import train_stage1
+
+    torch.set_num_threads(2)
+    run = tmp_path / "ci_run"
+    metrics = train_stage1(ci_dataset, "city", run, load_method_config("ci"), seed=0, progress=False)
+    log = [json.loads(line) for line in (run / "log_stage1.jsonl").read_text().splitlines()]
+    evals = [r["test_psnr"] for r in log if "test_psnr" in r]
+    assert log[0]["iteration"] == 0 and len(evals) >= 2
+    assert evals[-1] > evals[0] + 4.0, evals
+    assert metrics["test"]["psnr"] == pytest.approx(evals[-1], abs=0.05)
+    assert 0 < metrics["gaussians"] <= 6000
+    for f in ("config.yaml", "timings.json", "metrics_stage1.json", "renders/sheet_stage1.png"):
+        assert (run / f).is_file(), f
+    timings = json.loads((run / "timings.json").read_text())["stage1"]
+    assert timings["seconds"] > 0 and set(timings["breakdown_s"]) >= {"deform", "rasterize", "backward"}
+    stems = sorted(p.stem for p in (run / "predictions" / "p_map" / "train").glob("*.png"))
+    assert stems == sorted(f"r_{i:04d}" for i in range(16))
+    sep = metrics["separation"]
+    assert 0 <= sep["dynamic_recall"] <= 1 and 0 <= sep["static_recall"] <= 1
