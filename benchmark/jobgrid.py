@@ -106,11 +106,33 @@ def _cause(exc: BaseException) -> str:
 
 
 def record_failure(job: dict[str, Any], cause: str, tb: str | None = None, version: str = "unknown") -> None:
-    """Write a failed result for every configuration of ``job`` (and the traceback beside it)."""
+    """Write a failed result for every configuration of ``job`` and ``error.log`` beside it (the traceback,
+    or the cause when there is none, e.g. a worker process that died)."""
     for test, path in zip(job["tests"], job["results"]):
         write_result(path, failed_result(_identity(job, test, version), cause))
-        if tb:
-            atomic_write_text(Path(path).with_name("error.log"), tb)
+        atomic_write_text(Path(path).with_name("error.log"), tb or f"{cause}\n")
+
+
+def render_log_path(out: Path, job: dict[str, Any]) -> Path:
+    return Path(out) / "logs" / f"render_{job['scene']}.log"
+
+
+def failure_log(job: dict[str, Any], outcome: dict[str, Any]) -> Path | None:
+    """Where the cause of a failed job is written in full."""
+    if job["kind"] == "render":
+        return Path(outcome["log"]) if outcome.get("log") else None
+    logs = [Path(p).with_name("error.log") for p in job["results"]]
+    return next((p for p in logs if p.is_file()), None)
+
+
+def failure_summary(failed: list[tuple[dict, dict]], total: int, limit: int = 3) -> str:
+    """One line: how many jobs failed, which, and where their logs are."""
+    items = []
+    for job, outcome in failed[:limit]:
+        log = failure_log(job, outcome)
+        items.append(f"{job_label(job)} (log: {log})" if log else job_label(job))
+    more = f"; and {len(failed) - limit} more" if len(failed) > limit else ""
+    return f"{len(failed)} of {total} jobs run failed: " + "; ".join(items) + more
 
 
 def execute(job: dict[str, Any]) -> dict[str, Any]:
@@ -280,7 +302,10 @@ def run_grid(config: BenchmarkConfig, paths: Paths, executor: str = "local", wor
     rendered = run_jobs(rjobs, executor, workers_r, "rendering scenes", quiet)
     for job, outcome in rendered:
         if outcome["status"] != "ok":
-            print(f"warning: {job_label(job)} failed: {outcome['error']}", flush=True)
+            log = render_log_path(paths.out, job)
+            atomic_write_text(log, outcome.get("traceback") or f"{outcome.get('error')}\n")
+            outcome["log"] = str(log)
+            print(f"warning: {job_label(job)} failed: {outcome['error']} (log: {log})", flush=True)
     mjobs = method_jobs(config, paths)
     todo = [j for j in mjobs if not job_finished(j)]
     skipped = [j for j in mjobs if j not in todo]

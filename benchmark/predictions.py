@@ -18,7 +18,9 @@ PNGs), or ``exr`` / ``npz`` (float32, **linear** for albedo and the RGB images; 
 with the sRGB transfer function and clips to [0, 1], as Blender's "Standard" view transform does).
 Roughness, normals and P are linear in every format. A fourth (alpha) channel is ignored: the protocol
 masks with the ground-truth alpha. Components are optional per kind (a method without NVS gets no NVS
-score), but a kind that exists must have a file for every test view.
+score), but a kind that exists must have a file for every test view. Extensions match in any letter
+case; a file in another format (JPEG is lossy and not read), an empty kind folder, or two files for one
+view are errors, never skipped.
 
 ``meta.json``::
 
@@ -41,7 +43,8 @@ from lumibench.errors import UserError
 from lumibench.io import atomic_write_json, read_image, read_json
 
 KINDS = ("nvs", "albedo", "roughness", "normal", "relight", "p_map", "envmap")
-EXTENSIONS = (".png", ".exr", ".npz")
+EXTENSIONS = (".png", ".exr", ".npz")  # any letter case; nothing else is read (no lossy JPEG)
+ENVMAP_EXTENSIONS = (".hdr", ".exr", ".npz", ".png")
 # kinds whose PNG is display-encoded while float files are linear
 COLOUR_KINDS = ("nvs", "albedo", "relight")
 
@@ -57,10 +60,15 @@ def srgb_decode(x: np.ndarray) -> np.ndarray:
 
 
 def find_file(folder: Path, stem: str) -> Path | None:
-    """The prediction file for ``stem`` in any accepted format; two formats at once is ambiguous."""
-    found = [folder / f"{stem}{ext}" for ext in EXTENSIONS if (folder / f"{stem}{ext}").is_file()]
+    """The prediction file for ``stem`` in any accepted format, the extension in any letter case
+    (``r_0000.PNG`` is read); two files for one stem (``.png`` and ``.exr``, or ``.png`` and ``.PNG``) are
+    ambiguous."""
+    if not Path(folder).is_dir():
+        return None
+    found = sorted(p for p in Path(folder).iterdir()
+                   if p.stem == stem and p.suffix.lower() in EXTENSIONS and p.is_file())
     if len(found) > 1:
-        raise UserError(f"ambiguous predictions: {', '.join(map(str, found))} (keep one format)")
+        raise UserError(f"ambiguous predictions: {', '.join(map(str, found))} (keep one file per view)")
     return found[0] if found else None
 
 
@@ -95,6 +103,35 @@ class PredictionFolder:
             return Path(self.root) / "p_map" / "train"
         return Path(self.root) / kind
 
+    def check_files(self) -> None:
+        """Refuse what scoring would otherwise pass over in silence: an empty kind folder, or files in a
+        format it does not read (``.jpg``, ``.npy``, ...) in any kind folder. Hidden files are ignored."""
+        root = Path(self.root)
+        folders = [root / k for k in ("nvs", "albedo", "roughness", "normal")]
+        for parent, what in ((root / "relight", "a folder per test light"), (root / "p_map", "train/")):
+            if not parent.is_dir():
+                continue
+            entries = _visible(parent)
+            strays = [p.name for p in entries if not p.is_dir()]
+            if strays:
+                raise UserError(f"{parent}/ holds files ({_names(strays)}); it should hold {what} "
+                                f"(layout: benchmark/predictions.py)")
+            if not entries:
+                raise UserError(f"empty predictions folder {parent}/: write the predictions into {what} "
+                                "or remove the folder")
+            folders += entries if parent.name == "relight" else [parent / "train"]
+        for folder, exts in [(f, EXTENSIONS) for f in folders] + [(root / "envmap", ENVMAP_EXTENSIONS)]:
+            if not folder.is_dir():
+                continue
+            entries = _visible(folder)
+            if not entries:
+                raise UserError(f"empty predictions folder {folder}/: write one file per view "
+                                f"({'/'.join(e.lstrip('.') for e in exts)}) or remove the folder")
+            bad = [p.name for p in entries if not (p.is_file() and p.suffix.lower() in exts)]
+            if bad:
+                raise UserError(f"{folder}/ holds files the scorer does not read: {_names(bad)} (prediction files "
+                                f"are {', '.join(exts)}; convert or remove the others)")
+
     def has(self, kind: str, light: str | None = None) -> bool:
         folder = self.kind_dir(kind, light)
         return folder.is_dir() and any(p.suffix.lower() in EXTENSIONS for p in folder.iterdir())
@@ -127,9 +164,11 @@ class PredictionFolder:
     def envmap(self, light: str) -> np.ndarray | None:
         """The estimated env map (linear RGB) if the method wrote one."""
         folder = Path(self.root) / "envmap"
-        for ext in (".hdr", ".exr", ".npz", ".png"):
-            path = folder / f"{light}{ext}"
-            if path.is_file():
+        if folder.is_dir():
+            for path in sorted(folder.iterdir(), key=lambda p: _envmap_rank(p.suffix)):
+                if path.stem != light or not path.is_file() or path.suffix.lower() not in ENVMAP_EXTENSIONS:
+                    continue
+                ext = path.suffix.lower()
                 if ext == ".hdr":
                     from generator.envmap import read_envmap  # Radiance RGBE, which imageio cannot read
 
@@ -137,6 +176,20 @@ class PredictionFolder:
                 img = _rgb(read_image(path), path)
                 return srgb_decode(img) if ext == ".png" else img
         return None
+
+
+def _envmap_rank(suffix: str) -> int:
+    s = suffix.lower()
+    return ENVMAP_EXTENSIONS.index(s) if s in ENVMAP_EXTENSIONS else len(ENVMAP_EXTENSIONS)
+
+
+def _visible(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir() if not p.name.startswith("."))
+
+
+def _names(names: list[str], limit: int = 4) -> str:
+    more = f" and {len(names) - limit} more" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more
 
 
 def _rgb(img: np.ndarray, path: Path) -> np.ndarray:

@@ -38,6 +38,31 @@ def check_light(scene: Path, light: str, role: str) -> None:
         raise UserError(f"unknown {role} light '{light}' for scene {scene} (rendered: {', '.join(lights) or 'none'})")
 
 
+def check_scene(scene: Path) -> None:
+    """A finished rendered scene directory, or one line saying what it is instead."""
+    if not scene.is_dir():
+        raise UserError(f"scene directory not found: {scene}")
+    if not (scene / "transforms_test.json").is_file():
+        inside = sorted(p.name for p in scene.iterdir() if (p / "transforms_test.json").is_file())
+        hint = (f"; the scenes inside it are {', '.join(inside)}: give one of them" if inside else
+                " (a scene directory is DATA/PROFILE/<scene>, as written by make dataset)")
+        raise UserError(f"{scene} is not a rendered scene: it has no transforms_test.json{hint}")
+    if not layout.is_complete(scene):
+        raise UserError(f"dataset {scene} is not complete (its dataset.json does not say \"complete\": true): "
+                        "the render was interrupted or is still running; finish it with make dataset")
+
+
+def check_meta(meta: dict[str, Any], path: Path, scene: Path, train_light: str, scene_name: str | None) -> None:
+    """meta.json may name the scene and train light the predictions were made for: they must be these."""
+    names = {scene.name, scene.resolve().name} | ({scene_name} if scene_name else set())
+    if meta.get("scene") is not None and meta["scene"] not in names:
+        raise UserError(f"{path}: the predictions are for scene '{meta['scene']}', not '{scene_name or scene.name}' "
+                        "(wrong predictions folder or scene directory?)")
+    if meta.get("train_light") is not None and meta["train_light"] != train_light:
+        raise UserError(f"{path}: the predictions were trained under light '{meta['train_light']}', not "
+                        f"'{train_light}' (wrong predictions folder or train light?)")
+
+
 def read_gt(scene: Path, kind: str, file_path: str) -> np.ndarray:
     """Ground truth of ``kind``: the float .npz when the generator wrote one, else the PNG (decoded).
 
@@ -100,13 +125,14 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
     from benchmark import align, metrics
 
     scene = Path(scene_dir)
-    if not scene.is_dir():
-        raise UserError(f"scene directory not found: {scene}")
+    check_scene(scene)
     proto = get_protocol(protocol) if isinstance(protocol, str) else protocol
     check_light(scene, train_light, "train")
     check_light(scene, test_light, "test")
     pred = PredictionFolder(Path(pred_dir))
     meta = pred.meta()
+    check_meta(meta, Path(pred_dir) / "meta.json", scene, train_light, scene_name)
+    pred.check_files()
     frames = layout.read_transforms(scene, "test").frames
     if not frames:
         raise UserError(f"{scene}/transforms_test.json lists no test view")

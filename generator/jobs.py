@@ -3,8 +3,10 @@
 A job is one camera at one time in one variant/split. Jobs that see exactly the same image (same camera,
 same time: every test view, and the static variant's frame at the static timestep) are rendered once and
 copied, so the two variants can never disagree. A frame is finished when all its files exist and its
-record (``<scene>/.frames/<split>/r_NNNN.json``, written last) carries the same key: spec hash, render
-settings, the light set with the sha256 of each ``<light>.hdr``, the camera and the time.
+record (``<scene>/.frames/<split>/r_NNNN.json``, written last) carries the same key (spec hash, render
+settings, the light set with the sha256 of each ``<light>.hdr``, the camera and the time) and lists every
+file with the size and sha256 it had when written: a file truncated or changed afterwards makes the frame
+unfinished again.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from lumibench import layout
+from lumibench.io import sha256_file
 
 from . import cameras
 
@@ -97,11 +100,42 @@ class FrameJob:
         except (OSError, json.JSONDecodeError):
             return None
 
+    def file_digests(self, light_names: list[str]) -> dict[str, dict[str, Any]]:
+        """{path relative to the variant directory: {"size", "sha256"}} of every output file."""
+        out = {}
+        for p in self.outputs(light_names):
+            out[p.relative_to(self.scene_dir).as_posix()] = {"size": p.stat().st_size, "sha256": sha256_file(p)}
+        return out
+
+    def make_record(self, spec_hash: str, settings: RenderSettings, **extra: Any) -> dict[str, Any]:
+        """The completion record, made once every file is written: the key, ``extra`` (timings, Blender
+        version) and the size and sha256 of each file, so that a file changed afterwards is noticed."""
+        return {"key": self.key(spec_hash, settings), "file_path": self.file_path, **extra,
+                "files": self.file_digests(settings.light_names)}
+
+    def files_match(self, files: Any, light_names: list[str]) -> bool:
+        """Every output file exists with the size and sha256 the record lists (sizes first: cheap)."""
+        if not isinstance(files, dict):
+            return False  # a record without digests (older format) proves nothing about the files
+        paths = {p.relative_to(self.scene_dir).as_posix(): p for p in self.outputs(light_names)}
+        if set(files) != set(paths):
+            return False
+        for rel, p in paths.items():
+            want = files[rel]
+            try:
+                size = p.stat().st_size
+            except OSError:
+                return False
+            if not isinstance(want, dict) or want.get("size") != size:
+                return False
+        return all(files[rel].get("sha256") == sha256_file(p) for rel, p in paths.items())
+
     def is_done(self, spec_hash: str, settings: RenderSettings) -> bool:
+        """Finished for this key: the record carries the same key and every file matches its digest."""
         rec = self.read_record()
         if rec is None or rec.get("key") != _jsonable(self.key(spec_hash, settings)):
             return False
-        return all(p.is_file() for p in self.outputs(settings.light_names))
+        return self.files_match(rec.get("files"), settings.light_names)
 
 
 def _jsonable(obj: Any) -> Any:

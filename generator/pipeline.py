@@ -4,7 +4,7 @@
 
 Order of work: validate everything the user gave (scene, profile, lights, DATA) before any render;
 write the env maps and transforms; render the frames that are not already finished for the same key
-(generator.jobs) in ``jobs`` worker processes, each building the scene once; copy the frames that
+with every file as recorded (generator.jobs: size and sha256) in ``jobs`` worker processes, each building the scene once; copy the frames that
 show the same view; write dataset.json of both variants, with "complete": true last.
 """
 from __future__ import annotations
@@ -218,6 +218,7 @@ def _copy_frame(job: FrameJob, settings: RenderSettings) -> None:
     record["key"] = job.key(record.get("key", {}).get("spec_hash", ""), settings)
     record["file_path"] = job.file_path
     record["copied_from"] = src.label
+    record["files"] = job.file_digests(settings.light_names)  # of the copies, as written
     atomic_write_json(job.record_path(), record)
 
 

@@ -135,3 +135,48 @@ def test_seed_independent_methods_run_once(tmp_path):
         ("lit_as_albedo", "a", 0), ("lit_as_albedo", "b", 0),
         ("noisy_gt", "a", 0), ("noisy_gt", "a", 1), ("noisy_gt", "a", 2),
         ("noisy_gt", "b", 0), ("noisy_gt", "b", 1), ("noisy_gt", "b", 2)]
+
+
+def test_eval_exits_non_zero_after_writing_everything_when_a_job_failed(tmp_path):
+    data = dataset_root(tmp_path, scenes=("ok", "bad"), res=24, n_test=2, n_train=2)
+    (data / "ci" / "bad" / "city" / "test" / "r_0001.png").write_bytes(b"not a png")  # bad's job fails
+    grid = _grid(tmp_path, ["ok", "bad"], ["lit_as_albedo"])
+    cmd = [sys.executable, "-m", "benchmark", "eval", "--config", str(grid), "--data", str(data), "--runs",
+           str(tmp_path / "runs"), "--results", str(tmp_path / "results"), "--no-grids"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    out = tmp_path / "results" / "ci"
+    for name in ("table.md", "table.csv", "report.html", "stability.png"):  # written before exiting
+        assert (out / name).is_file(), name
+    assert "Traceback" not in proc.stderr
+    err = proc.stderr.strip().splitlines()[-1]  # the summary: one line, last (a progress bar may precede it)
+    log = out / "runs" / "lit_as_albedo" / "bad" / "city_to_sunrise" / "seed0" / "error.log"
+    assert err.startswith("error: 1 of 2 jobs run failed: lit_as_albedo bad city->sunrise seed 0")
+    assert f"(log: {log})" in err and "--keep-going" in err and log.is_file()
+    # --keep-going: the same summary as a warning, exit 0 (the failed job is retried, the other kept)
+    proc = subprocess.run(cmd + ["--keep-going"], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines()[-1].startswith("warning: 1 of 1 jobs run failed: lit_as_albedo bad")
+    # make eval passes KEEP_GOING=1 on as --keep-going (and nothing for KEEP_GOING=0 or unset)
+    dry = {v: subprocess.run(["make", "-n", "eval"] + ([f"KEEP_GOING={v}"] if v else []), capture_output=True,
+                             text=True, cwd=REPO).stdout for v in ("1", "0", "")}
+    assert "--keep-going" in dry["1"] and "--keep-going" not in dry["0"] + dry[""]
+
+
+def test_failed_render_is_logged(tmp_path, monkeypatch):
+    from benchmark.jobgrid import failure_summary
+
+    def render_scene(scene, profile, data, jobs):
+        raise RuntimeError("Cycles crashed")
+
+    monkeypatch.setitem(sys.modules, "generator.pipeline", types.SimpleNamespace(render_scene=render_scene))
+    monkeypatch.setattr("benchmark.jobgrid.known_scenes", lambda: ["newscene"])
+    config = load_benchmark_config(_grid(tmp_path, ["newscene"], ["mean_albedo"]))
+    paths = _paths(tmp_path, tmp_path / "data")
+    report = run_grid(config, paths, quiet=True)
+    assert [o["status"] for _, o in report.rendered + report.executed] == ["failed", "failed"]
+    log = paths.out / "logs" / "render_newscene.log"
+    assert "Cycles crashed" in log.read_text()
+    summary = failure_summary(report.failed, 2)
+    assert summary.startswith(f"2 of 2 jobs run failed: render ci/newscene (log: {log}); mean_albedo newscene")
+    assert "error.log" in summary

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -57,8 +58,8 @@ def test_noisy_gt_strict_psnr_is_analytic(noisy_strict):
 def test_noisy_gt_lumimotion_psnr_per_channel_and_masked(scene_full_alpha, tmp_path):
     # full alpha: the masked full image is the whole image, and per-channel PSNRs all equal the analytic value
     pred = NoisyGT(SIGMA).run(scene_full_alpha, "city", ["sunrise"], 1, "ci", tmp_path / "pred")
-    for p in [*(tmp_path / "pred").glob("albedo/*"), *(tmp_path / "pred").glob("nvs/*")]:
-        p.unlink()  # score relight (and roughness) only: keeps the test short
+    for kind in ("albedo", "nvs"):
+        shutil.rmtree(tmp_path / "pred" / kind)  # score relight (and roughness) only: keeps the test short
     res = score(scene_full_alpha, pred, "city", "sunrise", protocol="lumimotion")
     assert res["metrics"]["relight"]["psnr"] == pytest.approx(expected_psnr(SIGMA), abs=0.3)
     assert res["metrics"]["albedo"] is None and res["metrics"]["delta_psnr"] is None
@@ -127,8 +128,7 @@ def test_score_cli_writes_a_valid_result(scene, tmp_path):
     from benchmark.results import read_result
 
     pred = get_adapter("lit_as_albedo").run(scene, "city", ["sunrise"], 0, "ci", tmp_path / "pred")
-    for p in (pred / "albedo").glob("*"):  # relight and roughness only: keeps the subprocess short
-        p.unlink()
+    shutil.rmtree(pred / "albedo")  # relight and roughness only: keeps the subprocess short
     out = tmp_path / "res" / "results.json"
     proc = subprocess.run([sys.executable, "-m", "benchmark", "score", "--data", str(scene), "--pred", str(pred),
                            "--train-light", "city", "--test-light", "sunrise", "--protocol", "strict",
@@ -156,3 +156,111 @@ def test_albedo_alignment_is_per_channel_in_linear_space(scene, tmp_path):
     assert res["metrics"]["albedo"]["scale"] == pytest.approx(list(1 / factor), rel=1e-4)
     assert res["metrics"]["albedo"]["psnr"] > 60 and res["metrics"]["albedo"]["lpips"] < 1e-3
     assert res["metrics"]["relight"] is None and res["per_image"].keys() == {"albedo"}
+
+
+# ---- bad input: one line, exit 2, never a silently missing score --------------------------------------
+
+
+def _cli(*args, cwd=REPO):
+    proc = subprocess.run([sys.executable, "-m", "benchmark", "score", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd)
+    return proc
+
+
+def _one_line_error(proc, *needles):
+    assert proc.returncode == 2, (proc.returncode, proc.stdout[-500:], proc.stderr[-1500:])
+    err = proc.stderr.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    return err
+
+
+def test_unreadable_formats_are_refused_not_skipped(scene, tmp_path):
+    """`benchmark metrics` reads JPEG; scoring does not (lossy): a folder of .jpg must not score as 'albedo: null'."""
+    import imageio.v3 as iio
+
+    pred = _copy_pred(scene, tmp_path)
+    for p in sorted((pred / "albedo").glob("*.png")):
+        iio.imwrite(p.with_suffix(".jpg"), iio.imread(p)[..., :3])
+        p.unlink()
+    with pytest.raises(UserError, match=r"albedo/ holds files the scorer does not read: r_0000\.jpg, r_0001\.jpg"):
+        score(scene, pred, "city", "sunrise")
+    # a stray .npy beside valid files, and files straight in relight/, are named too
+    shutil.rmtree(pred / "albedo")
+    np.save(pred / "roughness" / "r_0000.npy", np.zeros((32, 32), np.float32))
+    with pytest.raises(UserError, match=r"roughness/ holds files the scorer does not read: r_0000\.npy"):
+        score(scene, pred, "city", "sunrise")
+    (pred / "roughness" / "r_0000.npy").unlink()
+    shutil.copy(pred / "relight" / "sunrise" / "r_0000.png", pred / "relight" / "r_0000.png")
+    with pytest.raises(UserError, match=r"relight/ holds files \(r_0000\.png\); it should hold a folder per test light"):
+        score(scene, pred, "city", "sunrise")
+
+
+def test_empty_kind_folder_and_letter_case_of_extensions(scene, tmp_path):
+    pred = _copy_pred(scene, tmp_path)
+    (pred / "nvs").mkdir()
+    with pytest.raises(UserError, match=r"empty predictions folder .*nvs/"):
+        score(scene, pred, "city", "sunrise")
+    (pred / "nvs").rmdir()
+    (pred / "relight" / "sunset").mkdir()
+    with pytest.raises(UserError, match=r"empty predictions folder .*relight/sunset/"):
+        score(scene, pred, "city", "sunrise")
+    (pred / "relight" / "sunset").rmdir()
+    # r_0001.PNG beside r_0001.png: two files for one view
+    shutil.copy(pred / "albedo" / "r_0001.png", pred / "albedo" / "r_0001.PNG")
+    with pytest.raises(UserError, match=r"ambiguous predictions: .*r_0001\.PNG, .*r_0001\.png"):
+        score(scene, pred, "city", "sunrise")
+    # alone, an upper-case extension is read like the lower-case one (same numbers)
+    shutil.rmtree(pred / "relight")  # albedo and roughness only: keeps the test short
+    (pred / "albedo" / "r_0001.png").unlink()
+    upper = score(scene, pred, "city", "sunrise")
+    (pred / "albedo" / "r_0001.PNG").rename(pred / "albedo" / "r_0001.png")
+    lower = score(scene, pred, "city", "sunrise")
+    assert upper["metrics"]["albedo"] == lower["metrics"]["albedo"]
+
+
+def test_meta_contradicting_the_command_line(scene, tmp_path):
+    import json as _json
+
+    pred = _copy_pred(scene, tmp_path)
+    meta_path = pred / "meta.json"
+    meta = _json.loads(meta_path.read_text())
+    assert meta["scene"] == scene.name and meta["train_light"] == "city"
+    proc = _cli("--data", scene, "--pred", pred, "--train-light", "sunset", "--test-light", "sunrise",
+                "--out", tmp_path / "r.json")
+    _one_line_error(proc, "trained under light 'city', not 'sunset'", "meta.json")
+    meta_path.write_text(_json.dumps(dict(meta, scene="hook")))
+    with pytest.raises(UserError, match=r"predictions are for scene 'hook', not 'fake'"):
+        score(scene, pred, "city", "sunrise")
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_incomplete_dataset_and_data_that_is_not_a_scene(scene, tmp_path):
+    pred = _copy_pred(scene, tmp_path)
+    args = ["--pred", pred, "--train-light", "city", "--test-light", "sunrise", "--out", tmp_path / "r.json"]
+    # the profile folder (DATA/PROFILE) instead of the scene: named, with the scene to pick
+    _one_line_error(_cli("--data", scene.parent, *args), "is not a rendered scene",
+                    f"the scenes inside it are {scene.name}")
+    _one_line_error(_cli("--data", tmp_path, *args), "is not a rendered scene", "DATA/PROFILE/<scene>")
+    assert "light" not in _cli("--data", tmp_path, *args).stderr
+    # an unfinished dataset (no "complete": true)
+    import json as _json
+
+    unfinished = tmp_path / "unfinished"
+    shutil.copytree(scene, unfinished)
+    meta = _json.loads((unfinished / "dataset.json").read_text())
+    (unfinished / "dataset.json").write_text(_json.dumps(dict(meta, complete=False)))
+    with pytest.raises(UserError, match=r"is not complete .*\"complete\": true"):
+        score(unfinished, pred, "city", "sunrise")
+    (unfinished / "dataset.json").unlink()
+    _one_line_error(_cli("--data", unfinished, *args), "is not complete")
+
+
+def test_unwritable_out_is_one_line_before_scoring(scene, tmp_path):
+    pred = _copy_pred(scene, tmp_path)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    args = ["--data", scene, "--pred", pred, "--train-light", "city", "--test-light", "sunrise"]
+    _one_line_error(_cli(*args, "--out", blocker / "r.json"), "cannot write the result file", "a_file/r.json")
+    _one_line_error(_cli(*args, "--out", tmp_path), "is a directory")

@@ -1,6 +1,7 @@
 """The rendering pipeline: layout, ground truth, shadows, resume, determinism (generator/pipeline.py)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -71,6 +72,87 @@ def test_npz_bytes_reproducible_and_readable(tmp_path):
     assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
     np.testing.assert_array_equal(read_image(tmp_path / "a.npz"), a)
     assert zipfile.ZipFile(tmp_path / "a.npz").namelist() == ["albedo.npy"]
+
+
+# ---- resume: which frames a run renders again (Blender replaced by a stand-in) ------------------------
+
+
+@pytest.fixture
+def stand_in_renderer(monkeypatch):
+    """Replace the Blender frame renders by a writer of bytes that depend on the frame's key; the record is
+    made by the same FrameJob.make_record the real renderer uses. Returns the list of rendered labels."""
+    from generator import pipeline
+    from lumibench.io import atomic_write_json
+
+    rendered: list[str] = []
+
+    def render_frames(run, pending, spec_hash, jobs, progress, on_rendered):
+        for job in pending:
+            key = json.dumps(job.key(spec_hash, run.settings), sort_keys=True)
+            for p in job.outputs(run.settings.light_names):
+                p.parent.mkdir(parents=True, exist_ok=True)
+                p.write_bytes(f"{p.name} {key}".encode() * 4)
+            atomic_write_json(job.record_path(), job.make_record(spec_hash, run.settings, seconds={"total": 0.0}))
+            rendered.append(job.label)
+
+    monkeypatch.setattr(pipeline, "_render_frames", render_frames)
+    return rendered
+
+
+def test_resume_re_renders_exactly_the_affected_frames(stand_in_renderer, tmp_path, monkeypatch):
+    from generator import pipeline
+
+    rendered = stand_in_renderer
+    scene, static = "spheres", "spheres_statictimestep0000"
+
+    def run(**kw):
+        rendered.clear()
+        kw.setdefault("frames", 3)
+        kw.setdefault("lights", ["city", "sunset"])
+        out = render_scene(scene, "ci", tmp_path, progress=False, test_views=1, **kw)
+        assert layout.is_complete(out) and layout.is_complete(out.parent / static)
+        return sorted(rendered)
+
+    everything = [f"{scene}/test/r_0000", *(f"{scene}/train/r_000{i}" for i in range(3)),
+                  *(f"{static}/train/r_000{i}" for i in (1, 2))]  # static train 0 and both test views: copies
+    assert run() == everything
+    assert run() == []
+    record = json.loads((tmp_path / "ci" / scene / ".frames" / "train" / "r_0001.json").read_text())
+    assert len(record["files"]) == 2 + 8 and all(len(f["sha256"]) == 64 for f in record["files"].values())
+    # a truncated file (another size) and a changed byte (same size): those two frames only
+    npz = layout.gt_path(tmp_path / "ci" / scene, "normal", "train/r_0001", ".npz")
+    npz.write_bytes(npz.read_bytes()[:10])
+    png = layout.lit_image_path(tmp_path / "ci" / static, "sunset", "train/r_0002")
+    data = bytearray(png.read_bytes())
+    data[5] ^= 1
+    png.write_bytes(bytes(data))
+    copy = layout.gt_path(tmp_path / "ci" / static, "albedo", "test/r_0000")  # a copied frame is copied again
+    copy.write_bytes(b"")
+    assert run() == [f"{scene}/train/r_0001", f"{static}/train/r_0002"]
+    assert copy.read_bytes() == layout.gt_path(tmp_path / "ci" / scene, "albedo", "test/r_0000").read_bytes()
+    # one more frame: the times of the dynamic frames 1 and 2 change, frame 0 (t = 0), the test view and the
+    # static variant (all at t = 0, same cameras) do not
+    assert run(frames=4) == [f"{scene}/train/r_0001", f"{scene}/train/r_0002", f"{scene}/train/r_0003",
+                             f"{static}/train/r_0003"]
+    assert run(frames=4) == []
+    # a render setting (samples per pixel) changes every frame
+    real = pipeline.load_profile
+
+    def more_samples(name):
+        prof = real(name)
+        return dataclasses.replace(prof, dataset=dataclasses.replace(prof.dataset, spp=prof.dataset.spp + 1))
+
+    all_renders = [f"{scene}/test/r_0000", *(f"{scene}/train/r_000{i}" for i in range(4)),
+                   *(f"{static}/train/r_000{i}" for i in (1, 2, 3))]
+    monkeypatch.setattr(pipeline, "load_profile", more_samples)
+    assert run(frames=4) == all_renders
+    monkeypatch.setattr(pipeline, "load_profile", real)
+    assert run(frames=4) == all_renders  # and back
+    # so do the light set and the scene spec
+    spec = load_scene_spec(scene)
+    assert run(frames=4, lights=["city"]) == all_renders
+    assert run(frames=4, spec=spec.without(spec.dynamic_object_names()[0])) == all_renders
+    assert run(frames=4) == all_renders and run(frames=4) == []
 
 
 # ---- the rendered ci dataset -------------------------------------------------------------------------
@@ -220,10 +302,15 @@ def test_deleted_frame_is_the_only_one_rendered_again(ci_dataset, tmp_path):
     victim.unlink()
     static_copy = scene.parent / f"{scene.name}_statictimestep0000" / "albedo" / "test" / "r_0001.png"
     static_copy.unlink()  # a copied frame is copied again, not rendered
+    truncated = layout.gt_path(scene, "normal", "train/r_0005", ".npz")  # listed in its record, cut afterwards
+    truncated.write_bytes(truncated.read_bytes()[:100])
+    record = json.loads((scene / ".frames" / "train" / "r_0005.json").read_text())
+    assert record["files"]["normal/train/r_0005.npz"]["size"] > 100  # the real renderer records sizes and hashes
     rendered = []
     render_scene(scene.name, "ci", data, jobs=1, progress=False, on_rendered=lambda job, rec: rendered.append(job.label))
-    assert rendered == [f"{scene.name}/train/r_0003"]
+    assert sorted(rendered) == [f"{scene.name}/train/r_0003", f"{scene.name}/train/r_0005"]
     assert victim.read_bytes() == (ci_dataset / victim.relative_to(scene)).read_bytes()  # rendered again: same bytes
+    assert truncated.read_bytes() == (ci_dataset / truncated.relative_to(scene)).read_bytes()
     assert_same_dataset(data / "ci", ci_dataset.parent, ci_dataset.name)
     assert layout.is_complete(scene)
     # nothing left to do: a second run renders nothing

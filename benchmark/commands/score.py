@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 from pathlib import Path
+
+from lumibench.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,14 +22,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="result file to write (default: <pred>/results_<train>_to_<test>.json)")
 
 
+def check_out(out: Path, given: bool) -> None:
+    """Before any metric runs: the result file can be written (one line naming it otherwise)."""
+    hint = "choose another --out" if given else "the predictions folder is not writable: give --out"
+    if out.is_dir():
+        raise UserError(f"--out {out} is a directory; give the result file's path, e.g. {out / 'results.json'}")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".write-test-"):
+            pass
+    except OSError as exc:
+        raise UserError(f"cannot write the result file {out}: {exc.strerror or exc} ({hint})") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from benchmark.results import write_result
     from benchmark.score import score
 
+    out = Path(args.out) if args.out else Path(args.pred) / f"results_{args.train_light}_to_{args.test_light}.json"
+    if args.out or Path(args.pred).is_dir():  # a missing --pred folder is score()'s error to name
+        check_out(out, bool(args.out))
     res = score(args.data, args.pred, args.train_light, args.test_light, args.protocol, args.lpips_net,
                 args.profile)
-    out = Path(args.out) if args.out else Path(args.pred) / f"results_{args.train_light}_to_{args.test_light}.json"
-    write_result(out, res)
+    try:
+        write_result(out, res)
+    except OSError as exc:
+        raise UserError(f"cannot write the result file {out}: {exc.strerror or exc}") from None
     summary = {task: res["metrics"][task] for task in ("nvs", "albedo", "roughness", "relight", "delta_psnr",
                                                         "separation") if res["metrics"].get(task)}
     print(json.dumps(summary, indent=1))

@@ -3,7 +3,8 @@
 For each frame: pose the scene at its time, place the camera, render the ground-truth pass once (a
 multilayer EXR: AOVs, world-space Normal, alpha; few samples, no bounces, no denoiser), turn it into
 the GT files, then render the lit RGBA PNG under each light, swapping only the world's env map. The
-frame's record is written last, so a frame interrupted anywhere is simply rendered again.
+frame's record (with each file's size and sha256) is written last, so a frame interrupted anywhere is
+simply rendered again.
 """
 from __future__ import annotations
 
@@ -106,15 +107,14 @@ class FrameRenderer:
                 exr.unlink()
         post_s = time.perf_counter() - t0
         lit_s = {light: round(self.render_lit(job, light), 4) for light in self.settings.light_names}
-        record = {
-            "key": job.key(spec_hash, self.settings),
-            "file_path": job.file_path,
-            "blender_version": self.blender_version,
-            "seconds": {"gt": round(gt_s, 4), "post": round(post_s, 4), "lit": lit_s,
-                        "total": round(time.perf_counter() - t_start, 4),
-                        # scene build in this worker before its first frame (bpy import not included)
-                        "worker_setup": round(self.build_seconds, 4) if self.frames_rendered == 0 else 0.0},
-        }
+        record = job.make_record(
+            spec_hash, self.settings,
+            blender_version=self.blender_version,
+            seconds={"gt": round(gt_s, 4), "post": round(post_s, 4), "lit": lit_s,
+                     "total": round(time.perf_counter() - t_start, 4),
+                     # scene build in this worker before its first frame (bpy import not included)
+                     "worker_setup": round(self.build_seconds, 4) if self.frames_rendered == 0 else 0.0},
+        )
         self.frames_rendered += 1
         atomic_write_json(rec_path, record)
         return record
