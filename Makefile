@@ -50,7 +50,7 @@ train: setup
 	$(PY) -m method train --scene $(SCENE) --light $(LIGHT) --profile $(PROFILE) --stage $(STAGE) --seed $(SEED) --device $(DEVICE) --data $(DATA) --runs $(RUNS) $(if $(RESUME),--resume,) $(OVERRIDES)
 
 eval: setup
-	$(PY) -m benchmark eval --profile $(PROFILE) --data $(DATA) --runs $(RUNS) --results $(RESULTS) --executor $(EXECUTOR) --jobs $(JOBS) $(if $(METHODS),--methods $(METHODS),)
+	$(PY) -m benchmark eval --profile $(PROFILE) --data $(DATA) --runs $(RUNS) --results $(RESULTS) --executor $(EXECUTOR) --jobs $(JOBS) $(if $(METHODS),--methods $(METHODS),) $(if $(filter-out 0,$(KEEP_GOING)),--keep-going,)
 
 demo: setup
 	$(PY) -m generator demo --data $(DATA) --jobs $(JOBS)
