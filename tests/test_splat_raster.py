@@ -191,6 +191,35 @@ def test_anisotropic_footprint_area():
     assert abs(area - math.pi * sx_px * sy_px) < 2 * math.pi * (sx_px + sy_px) * 0.5  # within half a pixel ring
 
 
+@pytest.mark.parametrize("angle", [0.6, -1.1])
+def test_anisotropic_footprint_orientation(angle):
+    """The long axis lies along the splat's rotated local x: on screen (x right, y down) the direction
+    (cos a, -sin a) for a rotation by a about the view axis, exactly o exp(-(u^2/sx^2 + v^2/sy^2)/2) per pixel."""
+    D, size, o = 4.0, 48, 0.9
+    cam = Camera.look_at((0.0, -D, 0.0), (0.0, 0.0, 0.0), size, size, dtype=F64)
+    sx_px, sy_px = 7.0, 2.5  # long local x, short local y
+    params, cam = _facing_splat(D, sx_px * D / cam.focal, sy_px * D / cam.focal, size, o, angle=angle)
+    out = rasterize(*params, cam)
+    c = torch.arange(size, dtype=F64) + 0.5 - size / 2
+    dx, dy_up = c[None, :], -c[:, None]  # image right = world x, image up = world z
+    u = dx * math.cos(angle) + dy_up * math.sin(angle)
+    v = -dx * math.sin(angle) + dy_up * math.cos(angle)
+    expect = (o * torch.exp(-0.5 * ((u / sx_px) ** 2 + (v / sy_px) ** 2))).clamp_max(0.99)
+    expect = torch.where(expect >= ALPHA_MIN, expect, torch.zeros_like(expect))
+    torch.testing.assert_close(out.alpha, expect, atol=1e-9, rtol=0)
+    # the same read off the image: principal axis of the alpha-weighted second moments
+    w = out.alpha
+    xs, ys = dx.expand_as(w), (-dy_up).expand_as(w)  # pixel offsets, y down
+    cov = torch.stack([torch.stack([(w * xs * xs).sum(), (w * xs * ys).sum()]),
+                       torch.stack([(w * xs * ys).sum(), (w * ys * ys).sum()])]) / w.sum()
+    evals, evecs = torch.linalg.eigh(cov)
+    long_axis = evecs[:, 1]
+    found = math.atan2(-float(long_axis[1]), float(long_axis[0]))  # angle measured counter-clockwise, y up
+    diff = (found - angle + math.pi / 2) % math.pi - math.pi / 2  # an axis: defined modulo pi
+    assert abs(diff) < math.radians(1.0), (math.degrees(found), math.degrees(angle))
+    assert float(evals[1] / evals[0]) == pytest.approx((sx_px / sy_px) ** 2, rel=0.05)
+
+
 def test_lowpass_fallback_for_tiny_splat():
     D, size, o = 4.0, 16, 0.7
     params, cam = _facing_splat(D, 1e-5, 1e-5, size, o)
