@@ -180,3 +180,23 @@ def test_failed_render_is_logged(tmp_path, monkeypatch):
     summary = failure_summary(report.failed, 2)
     assert summary.startswith(f"2 of 2 jobs run failed: render ci/newscene (log: {log}); mean_albedo newscene")
     assert "error.log" in summary
+
+
+def test_eval_does_not_count_a_method_not_run_as_failed(tmp_path, monkeypatch, capsys):
+    from baselines_adapters.base import MethodNotRun
+    from benchmark.__main__ import main
+
+    class NotRun(MethodAdapter):
+        name = "notrun"
+        version = "1"
+
+        def predict(self, *args, **kwargs):
+            raise MethodNotRun("run the external code first and put its output in /somewhere")
+
+    monkeypatch.setitem(registry._FACTORIES, "notrun", NotRun)
+    data = dataset_root(tmp_path, scenes=("fn",), res=24, n_test=2, n_train=2)
+    rc = main(["eval", "--config", str(_grid(tmp_path, ["fn"], ["notrun", "mean_albedo"])), "--data", str(data),
+               "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"), "--no-grids"])
+    err = capsys.readouterr().err
+    assert rc == 0 and "jobs run failed" not in err, err
+    assert (tmp_path / "results" / "ci" / "table.md").is_file()
