@@ -41,7 +41,7 @@ dataset: setup
 
 SCENE ?=
 LIGHT ?= city
-STAGE ?= 1
+STAGE ?= all
 SEED ?= 0
 DEVICE ?= cpu
 OVERRIDES ?=

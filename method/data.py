@@ -67,8 +67,12 @@ def _clean(file_path: str) -> str:
 
 
 def available_lights(scene: Path) -> list[str]:
-    """Light folders that hold a train split (a light is a folder of lit images)."""
-    return sorted(p.name for p in Path(scene).iterdir() if (p / "train").is_dir()) if Path(scene).is_dir() else []
+    """Light folders that hold a train split (a light is a folder of lit images; ground-truth kinds and
+    hidden bookkeeping folders are not lights)."""
+    if not Path(scene).is_dir():
+        return []
+    return sorted(p.name for p in Path(scene).iterdir()
+                  if (p / "train").is_dir() and p.name not in layout.GT_KINDS and not p.name.startswith("."))
 
 
 def check_scene(scene: Path, light: str) -> None:

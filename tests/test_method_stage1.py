@@ -297,7 +297,7 @@ def test_bad_input_is_one_line_exit_2(ci_dataset, tmp_path, capsys, argv, needle
 def test_existing_run_needs_resume(ci_dataset, tmp_path, capsys):
     from method.__main__ import main
 
-    args = ["train", "--scene", str(ci_dataset), "--run-dir", str(tmp_path / "r"), "--no-progress"] + TINY[:1] + \
+    args = ["train", "--scene", str(ci_dataset), "--run-dir", str(tmp_path / "r"), "--no-progress", "--stage", "1"] + TINY[:1] + \
         ["stage1.iterations=2", "stage1.checkpoint_every=1", "stage1.init_points=100", "stage1.max_gaussians=0"]
     assert main(args) == 0
     capsys.readouterr()

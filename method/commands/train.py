@@ -13,7 +13,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, help="scene name under DATA/PROFILE, or a scene directory")
     p.add_argument("--light", default="city", help="training light (default city)")
     p.add_argument("--profile", default="ci", help="effort profile: ci, small, full (default ci)")
-    p.add_argument("--stage", default="1", choices=["1", "2", "all"], help="stage to train (default 1)")
+    p.add_argument("--stage", default="all", choices=["1", "2", "all"],
+                   help="1, 2 (from the run's stage-1 checkpoint), or all: both, then the benchmark predictions (default)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--data", default="data", help="dataset root (default data)")
@@ -43,8 +44,6 @@ def resolve_scene(data: str, profile: str, scene: str) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
-
     from lumibench.errors import UserError
     from method.config import load_method_config
     from method.train import default_run_dir, train_stage1
@@ -56,11 +55,31 @@ def run(args: argparse.Namespace) -> int:
     name = args.name or ("static" if args.static else "lumimotion")
     run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(args.runs, args.profile, name, scene_dir.name,
                                                                        args.light, args.seed)
-    if args.stage in ("2",):
-        raise UserError("stage 2 is not available yet in this version (train stage 1: --stage 1)")
-    torch.set_num_threads(max(1, torch.get_num_threads()))
-    metrics = train_stage1(scene_dir, args.light, run_dir, cfg, seed=args.seed, device=args.device,
-                           static=True if args.static else None, resume=args.resume, progress=not args.no_progress)
+    from method.train import checkpoint_paths
+    from method.train2 import train_stage2, write_predictions
+
+    metrics = {}
+    stage1_done = bool(checkpoint_paths(run_dir, 1)) and (run_dir / "metrics_stage1.json").is_file()
+    if args.stage == "1" or (args.stage == "all" and not (args.resume and stage1_done)):
+        metrics = train_stage1(scene_dir, args.light, run_dir, cfg, seed=args.seed, device=args.device,
+                               static=True if args.static else None, resume=args.resume,
+                               progress=not args.no_progress)
+        _report_stage1(run_dir, metrics)
+    if args.stage in ("2", "all"):
+        m2 = train_stage2(scene_dir, args.light, run_dir, cfg, seed=args.seed, device=args.device,
+                          resume=args.resume or args.stage == "all" and bool(checkpoint_paths(run_dir, 2)),
+                          progress=not args.no_progress)
+        print(f"stage 2:     PBR PSNR (train views) {m2['pbr_psnr']:.2f} dB"
+              + (f"  albedo PSNR (aligned) {m2['albedo_psnr_aligned']:.2f} dB" if "albedo_psnr_aligned" in m2 else "")
+              + f"  {m2['seconds']:.1f} s")
+        pred = write_predictions(run_dir, scene_dir, args.light, cfg, method=name, device=args.device,
+                                 seed=args.seed, progress=not args.no_progress)
+        print(f"predictions: {pred}  (python -m benchmark score --data {scene_dir} --pred {pred} "
+              f"--train-light {args.light} --test-light <light>)")
+    return 0
+
+
+def _report_stage1(run_dir, metrics) -> None:
     test = metrics.get("test", {})
     sep = metrics.get("separation")
     print(f"run:         {run_dir}")
@@ -72,4 +91,3 @@ def run(args: argparse.Namespace) -> int:
           f"{metrics['seconds']:.1f} s")
     if metrics.get("sheet"):
         print(f"sheet:       {metrics['sheet']}")
-    return 0
