@@ -24,7 +24,7 @@ SCENES_DIR = Path(__file__).resolve().parent.parent / "configs" / "scenes"
 
 PRIMITIVES = ("box", "sphere", "ico_sphere", "cylinder", "cone", "torus", "rig")
 TEXTURES = ("none", "checker", "noise", "bricks", "stripes")
-TECHNICAL_SCENES = ("calib_sphere",)  # not part of the benchmark's five; rendered for convention tests
+TECHNICAL_SCENES = ("calib_sphere", "calib_sphere_glossy")  # not benchmark scenes; for convention tests
 # Bump when generator/motion.py or generator/blender/build.py change what a given spec renders.
 BUILDER_VERSION = 2  # 2: UV spheres built vertex by vertex (deterministic face-corner order)
 SCENE_BOX = 1.3  # everything must stay inside [-SCENE_BOX, SCENE_BOX]^3 (the method initialises there)
@@ -145,12 +145,12 @@ def rig_templates() -> dict:
 
 
 def available_scenes() -> list[str]:
-    """Every scene spec in configs/scenes/, sorted (the five benchmark scenes and calib_sphere)."""
+    """Every scene spec in configs/scenes/, sorted (the five benchmark scenes and the technical ones)."""
     return sorted(p.stem for p in SCENES_DIR.glob("*.yaml"))
 
 
 def benchmark_scenes() -> list[str]:
-    """The dynamic benchmark scenes: all specs except the technical ones (calib_sphere)."""
+    """The dynamic benchmark scenes: all specs except the technical ones (TECHNICAL_SCENES)."""
     return [s for s in available_scenes() if s not in TECHNICAL_SCENES]
 
 

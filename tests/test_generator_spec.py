@@ -48,7 +48,7 @@ def _load(tmp_path, text):
 
 
 def test_scene_list_contains_the_five_scenes_and_calibration():
-    assert set(REAL) | {"calib_sphere"} == set(available_scenes())
+    assert set(REAL) | {"calib_sphere", "calib_sphere_glossy"} == set(available_scenes())
     assert available_scenes() == sorted(available_scenes())
     assert benchmark_scenes() == REAL
 

@@ -1,0 +1,182 @@
+"""Environment maps as torch tensors (H, W, 3) of linear radiance, in the generator's convention.
+
+Orientation (generator/envmap.py, i.e. Cycles' direction_to_equirectangular): a world direction
+d = (x, y, z), +Z up, maps to u = 0.5 - atan2(y, x) / (2 pi), v = 1 - acos(z) / pi; rows are stored top
+row first. Lookup is nearest-texel because the generator lights every scene with an Environment Texture
+set to 'Closest' (generator/blender/world.py) at world strength 1, so the piecewise-constant map *is*
+the radiance Blender rendered with; a bilinear lookup would shade the dataset with a different sky.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from generator import envmap as genv
+from lumibench import layout
+from lumibench.errors import UserError
+
+DEFAULT_HEIGHT, DEFAULT_WIDTH = 16, 32
+
+
+def direction_to_uv(dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 3) world directions (any length > 0) -> (u, v) in [0, 1], Blender's mapping."""
+    x, y, z = dirs.unbind(-1)
+    u = torch.remainder(0.5 - torch.atan2(y, x) / (2.0 * math.pi), 1.0)
+    cz = (z / dirs.norm(dim=-1).clamp_min(1e-12)).clamp(-1.0, 1.0)
+    v = 1.0 - torch.acos(cz) / math.pi
+    return u, v
+
+
+def texel_index(dirs: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(row from the top, column) of the texel a 'Closest' lookup returns for each direction."""
+    u, v = direction_to_uv(dirs.detach())
+    col = torch.floor(u * width).long().remainder(width)
+    row_from_bottom = torch.floor(v * height).long().clamp(0, height - 1)
+    return height - 1 - row_from_bottom, col
+
+
+def lookup(env: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Radiance (..., 3) arriving from each direction (..., 3); differentiable w.r.t. ``env``."""
+    h, w = env.shape[0], env.shape[1]
+    row, col = texel_index(dirs, h, w)
+    return env.reshape(h * w, -1)[row * w + col]
+
+
+def texel_solid_angles(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """Exact solid angle of every texel, (H, W), summing to 4 pi."""
+    theta = torch.linspace(0.0, math.pi, height + 1, dtype=torch.float64)
+    band = (torch.cos(theta[:-1]) - torch.cos(theta[1:])) * (2.0 * math.pi / width)
+    return band[:, None].expand(height, width).to(device=device, dtype=dtype)
+
+
+def luminance(rgb: torch.Tensor) -> torch.Tensor:
+    return rgb[..., 0] * 0.2126 + rgb[..., 1] * 0.7152 + rgb[..., 2] * 0.0722
+
+
+def lower_hemisphere_l2(env: torch.Tensor) -> torch.Tensor:
+    """Mean squared radiance of the texels below the horizon (rows whose centre has z < 0).
+
+    Stage 2's regulariser: no scene is lit from below, so energy there is an artefact of the fit.
+    """
+    h = env.shape[0]
+    return env[(h + 1) // 2:].square().mean()
+
+
+# ------------------------------------------------------------------------------------------- loading
+
+def resample(img, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH) -> np.ndarray:
+    """Any map -> height x width by solid-angle-weighted area averaging (the generator's downsampling,
+    so the total light, hence diffuse shading, is preserved; a smaller map is upsampled the same way)."""
+    arr = img.detach().cpu().numpy() if torch.is_tensor(img) else np.asarray(img)
+    return genv.downsample_envmap(arr.astype(np.float32), width, height)
+
+
+def load_envmap(source: str | Path, scene_dir: str | Path | None = None, *, height: int | None = DEFAULT_HEIGHT,
+                width: int | None = DEFAULT_WIDTH, device=None, dtype=torch.float32) -> torch.Tensor:
+    """An env map as an (H, W, 3) tensor from an .hdr/.exr path or a light name.
+
+    A light name is looked up as ``<scene_dir>/<light>.hdr`` (the map exactly as the dataset was rendered)
+    and, failing that, in configs/lights.yaml (rotated and scaled as the generator does). The map is
+    resampled to height x width unless it already has that size (None keeps the file's size).
+    Bad input -> UserError with one line.
+    """
+    text = str(source)
+    path = Path(text).expanduser()
+    if text.lower().endswith((".hdr", ".exr")) or "/" in text:
+        img = genv.read_envmap(path)
+    elif scene_dir is not None and layout.envmap_path(Path(scene_dir), text).is_file():
+        img = genv.read_envmap(layout.envmap_path(Path(scene_dir), text))
+    else:
+        from generator import lights as glights
+
+        try:
+            spec = glights.resolve_light(text)
+        except UserError:
+            where = f" (no {layout.envmap_path(Path(scene_dir), text)})" if scene_dir is not None else ""
+            raise UserError(f"unknown environment map '{text}'{where}: give an .hdr/.exr path or a light name "
+                            f"({', '.join(sorted(glights.load_lights()))})") from None
+        img = glights.prepare_envmap(spec)
+    if height is not None and width is not None and img.shape[:2] != (height, width):
+        img = resample(img, height, width)
+    return torch.as_tensor(np.ascontiguousarray(img[..., :3]), dtype=dtype, device=device)
+
+
+# --------------------------------------------------------------------------------------- learnable map
+
+class LearnableEnvMap(torch.nn.Module):
+    """One environment map for the whole scene, stored as log radiance with an exp activation.
+
+    exp keeps radiance positive and makes the learning rate act on relative change (a sun texel 100x
+    brighter than the sky needs no larger steps than the sky).
+    """
+
+    def __init__(self, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH, init: float | torch.Tensor = 0.5):
+        super().__init__()
+        if torch.is_tensor(init) and init.dim() == 3:
+            if init.shape[-1] != 3:
+                raise ValueError(f"init map must be (H, W, 3), got {tuple(init.shape)}")
+            start = init.detach().to(torch.float32).clamp_min(1e-6).log()
+        else:
+            value = float(init)
+            if not value > 0.0:
+                raise ValueError(f"init radiance must be positive, got {value}")
+            start = torch.full((height, width, 3), math.log(value))
+        self.log_radiance = torch.nn.Parameter(start.clone())
+
+    def forward(self) -> torch.Tensor:
+        """The (H, W, 3) radiance."""
+        return self.log_radiance.exp()
+
+
+# ------------------------------------------------------------------------------- importance sampling
+
+@dataclass
+class EnvSampler:
+    """Texel probabilities proportional to luminance x solid angle (a fixed, gradient-free proposal).
+
+    A small uniform floor keeps every texel reachable so the pdf is never zero where radiance is not.
+    """
+
+    height: int
+    width: int
+    cdf: torch.Tensor  # (H W,) inclusive cumulative texel probabilities
+    prob: torch.Tensor  # (H W,)
+    solid_angle: torch.Tensor  # (H W,)
+
+    @staticmethod
+    def build(env: torch.Tensor, floor: float = 0.05) -> "EnvSampler":
+        h, w = env.shape[0], env.shape[1]
+        with torch.no_grad():
+            sa = texel_solid_angles(h, w, env.device, torch.float64).reshape(-1)
+            power = luminance(env.detach().to(torch.float64)).clamp_min(0.0).reshape(-1) * sa
+            total = float(power.sum())
+            p = power / total if total > 0 else sa / sa.sum()
+            p = (1.0 - floor) * p + floor * sa / sa.sum()
+            cdf = torch.cumsum(p, 0)
+            cdf = cdf / cdf[-1]
+        dt = env.dtype
+        return EnvSampler(h, w, cdf.to(dt), p.to(dt), sa.to(dt))
+
+    def sample(self, u_texel: torch.Tensor, u_phi: torch.Tensor, u_z: torch.Tensor) -> torch.Tensor:
+        """Uniform numbers in [0, 1) -> directions (...) x 3, uniform in solid angle within the texel."""
+        idx = torch.searchsorted(self.cdf, u_texel.contiguous().to(self.cdf.dtype), right=True)
+        idx = idx.clamp(0, self.height * self.width - 1)
+        row, col = torch.div(idx, self.width, rounding_mode="floor"), idx.remainder(self.width)
+        u = (col.to(u_phi.dtype) + u_phi) / self.width
+        # texel row r (from the top) spans z = cos(theta) from cos(r pi / H) down to cos((r + 1) pi / H)
+        z_hi = torch.cos(row.to(u_z.dtype) * math.pi / self.height)
+        z_lo = torch.cos((row.to(u_z.dtype) + 1.0) * math.pi / self.height)
+        z = z_lo + (z_hi - z_lo) * u_z
+        phi = math.pi * (1.0 - 2.0 * u)
+        s = torch.sqrt((1.0 - z * z).clamp_min(0.0))
+        return torch.stack([s * torch.cos(phi), s * torch.sin(phi), z], -1)
+
+    def pdf(self, dirs: torch.Tensor) -> torch.Tensor:
+        """Solid-angle density of ``sample`` at each direction."""
+        row, col = texel_index(dirs, self.height, self.width)
+        idx = row * self.width + col
+        return self.prob[idx] / self.solid_angle[idx]
