@@ -115,6 +115,8 @@ def _validate(cfg: dict) -> None:
         raise UserError(f"key 'model.p_temperature' must be positive (got {m['p_temperature']})")
     if s["init_points"] < 1:
         raise UserError(f"key 'stage1.init_points' must be >= 1 (got {s['init_points']})")
+    if s["init_scale"] <= 0:
+        raise UserError(f"key 'stage1.init_scale' must be positive (got {s['init_scale']})")
     if not 0 < s["init_opacity"] < 1:
         raise UserError(f"key 'stage1.init_opacity' must be in (0, 1) (got {s['init_opacity']})")
     if s["max_gaussians"] and s["max_gaussians"] < s["init_points"]:

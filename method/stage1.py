@@ -32,12 +32,14 @@ class Deformed:
 
 class DynamicScene:
     def __init__(self, gaussians: Gaussians, net: DeformNet | None, center: torch.Tensor, extent: float,
-                 temperature: float = 0.5):
+                 temperature: float = 0.5, delta_colour: bool = True, separation: bool = True):
         self.g = gaussians
         self.net = net
         self.center = center
         self.extent = float(extent)
         self.temperature = float(temperature)
+        self.delta_colour = bool(delta_colour)  # False: the wo_dc ablation
+        self.separation = bool(separation)      # False: the wo_P ablation (P = 1 always)
 
     @property
     def static(self) -> bool:
@@ -57,6 +59,8 @@ class DynamicScene:
             return Deformed(means, quats, g.scales, g.opacities, colours, means.new_zeros(n), zero, zero)
         if fixed_p is not None:
             p = means.new_full((n,), float(fixed_p))
+        elif not self.separation:
+            p = means.new_ones(n)
         elif p_mode == "sample":
             p = binary_concrete(g.t["p_logit"], self.temperature, generator, training=True)
         elif p_mode == "ones":
@@ -65,6 +69,8 @@ class DynamicScene:
             p = self.p_inference()
         x = (means - self.center.to(means)) / self.extent
         d_mu, d_rot, d_col = self.net(x, t)
+        if not self.delta_colour:
+            d_col = torch.zeros_like(d_col)
         pc = p[:, None]
         return Deformed(means + pc * d_mu, quats + pc * d_rot, g.scales, g.opacities, colours * (1.0 - d_col),
                         p, d_mu, d_col)
@@ -100,10 +106,10 @@ def stage1_loss(out: RasterOutput, d: Deformed, rgb_gt: torch.Tensor, alpha_gt: 
         terms["mask"] = losses.mask_bce(out.alpha, alpha_gt)
         total = total + s["lambda_mask"] * terms["mask"]
     if d.d_mu.requires_grad or d.p.requires_grad:  # the dynamic terms (absent in the static pipeline)
-        if not warmup and s["lambda_p"] > 0:
+        if not warmup and s["lambda_p"] > 0 and d.p.requires_grad:
             terms["p"] = losses.p_l1(d.p)
             total = total + s["lambda_p"] * terms["p"]
-        if s["lambda_dc"] > 0:
+        if s["lambda_dc"] > 0 and d.d_col.requires_grad:
             terms["dc"] = losses.mean_sq_norm(d.d_col)
             total = total + s["lambda_dc"] * terms["dc"]
         if s["lambda_dmu"] > 0:

@@ -113,12 +113,14 @@ def init_points(data: SceneData, cfg: dict, gen: torch.Generator) -> torch.Tenso
 def build_scene(data: SceneData, cfg: dict, static: bool, gen: torch.Generator, device: torch.device) -> DynamicScene:
     m = cfg["model"]
     pts = init_points(data, cfg, gen)
-    g = Gaussians.from_points(pts, cfg["stage1"]["init_opacity"], m["p_init_logit"], gen).to(device)
+    g = Gaussians.from_points(pts, cfg["stage1"]["init_opacity"], m["p_init_logit"], gen,
+                              scale_factor=cfg["stage1"]["init_scale"]).to(device)
     net = None
     if not static:
         net = DeformNet(m["mlp_depth"], m["mlp_width"], m["mlp_skip"], m["pos_freqs"], m["time_freqs"],
                         m["time_net_width"], m["time_net_out"]).to(device)
-    return DynamicScene(g, net, data.center.to(device), data.extent, m["p_temperature"])
+    return DynamicScene(g, net, data.center.to(device), data.extent, m["p_temperature"], m["delta_colour"],
+                        m["separation"])
 
 
 def make_optimisers(scene: DynamicScene, cfg: dict) -> tuple[GaussianAdam, torch.optim.Optimizer | None]:
@@ -171,7 +173,9 @@ def scene_from_checkpoint(ck: dict, cfg: dict, device) -> DynamicScene:
         net = DeformNet(m["mlp_depth"], m["mlp_width"], m["mlp_skip"], m["pos_freqs"], m["time_freqs"],
                         m["time_net_width"], m["time_net_out"]).to(device)
         net.load_state_dict(ck["net"])
-    return DynamicScene(g, net, ck["center"].to(device), ck["extent"], ck["temperature"])
+    m = cfg["model"]
+    return DynamicScene(g, net, ck["center"].to(device), ck["extent"], ck["temperature"], m["delta_colour"],
+                        m["separation"])
 
 
 # ------------------------------------------------------------------------------------------ the loop
@@ -272,6 +276,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
     H, W = data.resolution
     n_views = len(data.train)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     last_psnr = None
     ema_loss = None
     from lumibench.progress import make_progress
@@ -353,6 +358,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
     iters_run = total - start_it
     timings = {
         "stage1": {"seconds": seconds, "iterations": total, "iterations_per_s": total / max(seconds, 1e-9),
+                   "cpu_seconds_this_session": time.process_time() - c0,
                    "breakdown_s": {k: round(v, 4) for k, v in timer.sums.items()},
                    "breakdown_iterations": iters_run},
         "device": device_name(dev), "device_type": dev.type, "threads": torch.get_num_threads(),

@@ -172,10 +172,12 @@ def stage2_metrics(scene, mats, data: SceneData, cfg: dict, gen) -> dict:
 
 def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, method: str = "lumimotion",
                       device: str = "cpu", seed: int = 0, test_lights: list[str] | None = None,
-                      progress: bool = False, albedo_from_colour: bool = False) -> Path:
+                      progress: bool = False, albedo_from_colour: bool = False,
+                      train_scene_dir: Path | None = None) -> Path:
     """The benchmark predictions of a finished run under ``run_dir/predictions`` (benchmark/predictions.py
     layout; meta.json last). ``albedo_from_colour``: the 'without stage 2' ablation (canonical colour as
-    albedo, relit with the same shading)."""
+    albedo, relit with the same shading). ``scene_dir`` gives the test views and light maps; the P maps of
+    the training views come from stage 1 (written by ``train_stage1``)."""
     from baselines_adapters.base import save
     from benchmark.predictions import write_meta
     from generator.envmap import write_hdr
@@ -216,10 +218,6 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
     if env_est is not None:
         (pred / "envmap").mkdir(parents=True, exist_ok=True)
         write_hdr(pred / "envmap" / f"{light}.hdr", env_est.cpu().numpy())
-    if not (pred / "p_map" / "train").is_dir() and not scene.static:
-        from method.outputs import write_p_maps
-
-        write_p_maps(scene, data, pred)
     timings = {}
     tpath = run_dir / "timings.json"
     if tpath.is_file():

@@ -50,9 +50,10 @@ class Gaussians:
 
     @staticmethod
     def from_points(points: torch.Tensor, init_opacity: float, p_init_logit: float,
-                    generator: torch.Generator, colours: torch.Tensor | None = None) -> "Gaussians":
+                    generator: torch.Generator, colours: torch.Tensor | None = None,
+                    scale_factor: float = 1.0) -> "Gaussians":
         n = points.shape[0]
-        scale = nearest_distance(points).clamp_min(1e-4)
+        scale = (nearest_distance(points) * scale_factor).clamp_min(1e-4)
         col = torch.full((n, 3), 0.5) if colours is None else colours
         return Gaussians({
             "means": points.float(),

@@ -21,7 +21,7 @@ import torch
 
 from . import brdf as B
 from .envmap import EnvSampler, lookup
-from .sampling import pdf_ggx, pdf_hemisphere, random_offsets, sample_ggx, sample_hemisphere
+from .sampling import pdf_ggx, pdf_hemisphere, random_offsets, sample_env, sample_ggx, sample_hemisphere
 
 DEFAULT_MIX = (0.5, 0.25, 0.25)  # share of the directions per strategy: cosine, ggx, env
 MAX_SAMPLES_PER_CHUNK = 1 << 20  # pixels x directions evaluated at once (bounds peak memory)
@@ -75,12 +75,14 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
     counts = split_directions(n_dirs, mix)
     rough = B.clamp_roughness(roughness.reshape(P))
     sampler = EnvSampler.build(envmap) if counts[2] > 0 else None
+    # every random number of the call, per pixel: results do not depend on the chunking
+    offsets = random_offsets((P, 5), generator, normals.device, normals.dtype)
     chunk = max(1, max_samples // n_dirs)
     outs, diffs, specs = [], [], []
     for s in range(0, P, chunk):
         e = min(P, s + chunk)
         rgb, dif, spe = _shade_chunk(None if points is None else points[s:e], normals[s:e], view_dirs[s:e],
-                                     albedo[s:e], rough[s:e], envmap, sampler, counts, generator, visibility,
+                                     albedo[s:e], rough[s:e], envmap, sampler, counts, offsets[s:e], visibility,
                                      indirect, diffuse_weighting)
         outs.append(rgb)
         diffs.append(dif)
@@ -91,17 +93,17 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
     return rgb
 
 
-def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, counts, generator, visibility,
+def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, counts, offsets, visibility,
                  indirect, weighting):
     n_cos, n_ggx, n_env = counts
     P = normals.shape[0]
     with torch.no_grad():
         nd, vd, rd = normals.detach(), view_dirs.detach(), rough.detach()
-        parts = [sample_hemisphere(nd, n_cos, generator, cosine=True)]
+        parts = [sample_hemisphere(nd, n_cos, cosine=True, rotation=offsets[:, 0:1])]
         if n_ggx:
-            parts.append(sample_ggx(nd, vd, rd, n_ggx, generator))
+            parts.append(sample_ggx(nd, vd, rd, n_ggx, rotation=offsets[:, 1:2]))
         if n_env:
-            parts.append(_sample_env(sampler, P, n_env, generator, nd))
+            parts.append(sample_env(sampler, n_env, offsets[:, 2:5]))
         dirs = torch.cat(parts, 1)  # (P, S, 3)
         dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         h = dirs + vd[:, None, :]
@@ -126,18 +128,9 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, cou
     cos_w = nl.clamp_min(0.0) * inv  # (n.l) / sum_k n_k p_k
     radiance = _incident(points, dirs, live, envmap, visibility, indirect)  # (P, S, 3)
     dw = wd * cos_w if torch.is_tensor(wd) else cos_w * wd
-    diffuse = albedo / torch.pi * (dw[..., None] * radiance).sum(1)
+    diffuse = albedo / 3.0 * (dw[..., None] * radiance).sum(1)
     specular = ((spec * cos_w)[..., None] * radiance).sum(1)
     return diffuse + specular, diffuse, specular
-
-
-def _sample_env(sampler: EnvSampler, P: int, n: int, generator, normals) -> torch.Tensor:
-    """n stratified env samples per pixel: texel choice on (i + offset) / n, uniform inside the texel."""
-    dev, dt = normals.device, normals.dtype
-    i = torch.arange(n, device=dev, dtype=dt)
-    u = torch.remainder((i[None, :] + random_offsets((P, 1), generator, dev, dt)) / n, 1.0)
-    jit = random_offsets((P, n, 2), generator, dev, dt)
-    return sampler.sample(u, jit[..., 0], jit[..., 1])
 
 
 def _incident(points, dirs, live, envmap, visibility, indirect):

@@ -8,7 +8,8 @@ the error of neighbouring pixels independent, so it averages out in the loss ins
     cosine: the lattice on the hemisphere with z = sqrt(1 - t): density cos / pi (diffuse term)
     uniform: z = 1 - t: density 1 / (2 pi) (the paper's estimator, kept for comparison)
     ggx:    half vectors from D(h) (n.h), reflected about h: density D (n.h) / (4 v.h) (specular lobe)
-    env:    texels by luminance x solid angle (envmap.EnvSampler), for small bright suns
+    env:    texels by luminance x solid angle (envmap.EnvSampler), for small bright suns; texel and
+            position inside it from a 3D lattice (Roberts R3) shifted per pixel
 
 Local frames are built around each normal (Duff et al. 2017, branchless); no gradients flow through
 the sampled directions or pdfs (they define the estimator, not the model).
@@ -65,12 +66,19 @@ def hemisphere_lattice(n: int, cosine: bool = True, device=None, dtype=torch.flo
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
 
 
+def _rotation(P: int, generator, rotation, normals) -> torch.Tensor:
+    if rotation is not None:
+        return rotation.reshape(P, 1).to(normals.dtype)
+    return random_offsets((P, 1), generator, normals.device, normals.dtype)
+
+
 def sample_hemisphere(normals: torch.Tensor, n: int, generator: torch.Generator | None = None,
-                      cosine: bool = True) -> torch.Tensor:
-    """(P, n, 3) world directions: the lattice around each normal, rotated by a random azimuth per pixel."""
+                      cosine: bool = True, rotation: torch.Tensor | None = None) -> torch.Tensor:
+    """(P, n, 3) world directions: the lattice around each normal, rotated by a random azimuth per pixel
+    (``rotation``: (P, 1) in [0, 1) turns, drawn from ``generator`` when not given)."""
     P = normals.shape[0]
     t, a = lattice(n, normals.device, normals.dtype)
-    a = a[None, :] + random_offsets((P, 1), generator, normals.device, normals.dtype)
+    a = a[None, :] + _rotation(P, generator, rotation, normals)
     z = (torch.sqrt(1.0 - t) if cosine else 1.0 - t).expand(P, n)
     r = torch.sqrt((1.0 - z * z).clamp_min(0.0))
     phi = 2.0 * math.pi * a
@@ -85,7 +93,7 @@ def pdf_hemisphere(cos_theta: torch.Tensor, cosine: bool = True) -> torch.Tensor
 
 
 def sample_ggx(normals: torch.Tensor, view_dirs: torch.Tensor, roughness: torch.Tensor, n: int,
-               generator: torch.Generator | None = None) -> torch.Tensor:
+               generator: torch.Generator | None = None, rotation: torch.Tensor | None = None) -> torch.Tensor:
     """(P, n, 3) directions l = reflect(v, h) with h drawn from D(h) (n.h) on the stratified lattice.
 
     ``roughness`` is (P,) or (P, 1); directions below the surface are returned as they are (their
@@ -93,7 +101,7 @@ def sample_ggx(normals: torch.Tensor, view_dirs: torch.Tensor, roughness: torch.
     """
     P = normals.shape[0]
     t, a = lattice(n, normals.device, normals.dtype)
-    a = a[None, :] + random_offsets((P, 1), generator, normals.device, normals.dtype)
+    a = a[None, :] + _rotation(P, generator, rotation, normals)
     a2 = roughness.reshape(P, 1).pow(4)
     cos_h = torch.sqrt((1.0 - t[None, :]) / (1.0 + (a2 - 1.0) * t[None, :]))
     sin_h = torch.sqrt((1.0 - cos_h * cos_h).clamp_min(0.0))
@@ -101,6 +109,19 @@ def sample_ggx(normals: torch.Tensor, view_dirs: torch.Tensor, roughness: torch.
     h = to_world(torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), cos_h], -1), normals)
     v = view_dirs[:, None, :]
     return 2.0 * (v * h).sum(-1, keepdim=True) * h - v
+
+
+_R3 = 1.2207440846057596  # the plastic number: Roberts' R3 sequence, a 3D low-discrepancy lattice
+
+
+def sample_env(sampler, n: int, offsets: torch.Tensor) -> torch.Tensor:
+    """(P, n, 3) env-map directions: texel choice and position inside the texel from the 3D lattice
+    ((i + 0.5) / n, frac(i / R3^2), frac(i / R3^3)), shifted per pixel by ``offsets`` (P, 3) in [0, 1)."""
+    dev, dt = offsets.device, offsets.dtype
+    i = torch.arange(n, device=dev, dtype=torch.float64)
+    base = torch.stack([(i + 0.5) / n, torch.remainder(i / _R3 ** 2, 1.0), torch.remainder(i / _R3 ** 3, 1.0)], -1)
+    u = torch.remainder(base.to(dt)[None] + offsets[:, None, :], 1.0)
+    return sampler.sample(u[..., 0], u[..., 1], u[..., 2])
 
 
 def pdf_ggx(n_dot_h: torch.Tensor, v_dot_h: torch.Tensor, roughness: torch.Tensor) -> torch.Tensor:

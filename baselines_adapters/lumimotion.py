@@ -1,0 +1,151 @@
+"""In-project adapters: LumiMotion, its ablations, the static baseline, and budget variants.
+
+Each trains (or reuses) a run under ``RUNS/PROFILE/<name>/<scene>/<train light>/seed<k>/`` with the
+method's own training code and writes the benchmark predictions there (``.../predictions``, the folder
+the job grid scores). A finished run is never retrained: stage 1, stage 2 and the predictions are each
+skipped when their outputs exist, so scoring another test light or re-running `make eval` costs nothing.
+
+* ``lumimotion``  stage 1 + stage 2 on the dynamic variant
+* ``wo_stage2``   stage 1 only; the canonical colour is the albedo, roughness stays at its initial value,
+                  relit with the same shading (paper's "w/o stage 2")
+* ``wo_dc``       no delta colour: moving shadows must be explained by geometry
+* ``wo_P``        no static/dynamic separation: P = 1 for every Gaussian
+* ``static``      the same pipeline without the deformation network, on ``<scene>_statictimestepNNNN``
+                  (same cameras, one timestep): the IRGS-like baseline that isolates the paper's thesis
+* ``<method>@<budget>``  the same at a fraction of the profile's iterations (``@0.25``) and/or a Gaussian
+                  cap (``@cap10000``), joined with ``+`` (``lumimotion@0.5+cap10000``)
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from lumibench.errors import UserError
+
+from .base import MethodAdapter
+
+VARIANTS = {
+    "lumimotion": {"overrides": [], "static": False, "stage2": True},
+    "wo_stage2": {"overrides": [], "static": False, "stage2": False},
+    "wo_dc": {"overrides": ["model.delta_colour=false"], "static": False, "stage2": True},
+    "wo_P": {"overrides": ["model.separation=false"], "static": False, "stage2": True},
+    "static": {"overrides": [], "static": True, "stage2": True},
+}
+_BUDGET = re.compile(r"^(?:(?P<frac>\d*\.?\d+)|cap(?P<cap>\d+))$")
+
+
+def parse_budget(spec: str) -> tuple[float, int]:
+    """'0.25', 'cap10000' or '0.5+cap10000' -> (iteration fraction, Gaussian cap or 0)."""
+    frac, cap = 1.0, 0
+    for part in spec.split("+"):
+        m = _BUDGET.match(part.strip())
+        if not m:
+            raise UserError(f"unknown budget '{part}' in '{spec}': use a fraction of the iterations (0.25) "
+                            f"and/or a Gaussian cap (cap10000), joined with '+'")
+        if m.group("frac"):
+            frac = float(m.group("frac"))
+            if not 0 < frac <= 4:
+                raise UserError(f"budget fraction {frac} must be in (0, 4]")
+        else:
+            cap = int(m.group("cap"))
+    return frac, cap
+
+
+class LumiMotionAdapter(MethodAdapter):
+    version = "1"
+
+    def __init__(self, name: str = "lumimotion", budget: str | None = None):
+        base = name.split("@", 1)[0]
+        if base not in VARIANTS:
+            raise UserError(f"unknown LumiMotion variant '{base}' (known: {', '.join(VARIANTS)})")
+        self.name = name if budget is None else f"{base}@{budget}"
+        self.base = base
+        self.variant = VARIANTS[base]
+        self.budget = budget
+
+    def overrides(self, profile: str) -> list[str]:
+        from method.config import load_method_config
+
+        out = list(self.variant["overrides"])
+        if self.budget:
+            frac, cap = parse_budget(self.budget)
+            cfg = load_method_config(profile)
+            if frac != 1.0:
+                for stage in ("stage1", "stage2"):
+                    out.append(f"{stage}.iterations={max(1, round(cfg[stage]['iterations'] * frac))}")
+                s1 = cfg["stage1"]
+                for key in ("densify_until", "normal_from", "distortion_from", "warmup", "densify_from"):
+                    out.append(f"stage1.{key}={max(1, round(s1[key] * frac))}")
+            if cap:
+                out.append(f"stage1.max_gaussians={cap}")
+                out.append(f"stage1.init_points={min(cap, cfg['stage1']['init_points'])}")
+        return out
+
+    def scene_for(self, scene_dir: Path) -> Path:
+        if not self.variant["static"]:
+            return scene_dir
+        from lumibench import layout
+
+        if "_statictimestep" in scene_dir.name:
+            return scene_dir
+        found = sorted(scene_dir.parent.glob(f"{scene_dir.name}_statictimestep*"))
+        found = [p for p in found if layout.is_complete(p) or not (p / "dataset.json").is_file()]
+        if not found:
+            raise UserError(f"no static variant beside {scene_dir} ({scene_dir.name}_statictimestepNNNN): "
+                            f"render it with `make dataset`")
+        return found[0]
+
+    def predict(self, scene_dir, train_light, test_lights, seed, profile, out_dir, runs_dir):
+        from method.config import load_method_config
+        from method.data import available_lights
+        from method.train import checkpoint_paths, train_stage1
+        from method.train2 import train_stage2, write_predictions
+
+        profile = profile or "ci"
+        cfg = load_method_config(profile, self.overrides(profile))
+        run_dir = Path(out_dir).parent if Path(out_dir).name == "predictions" else (
+            Path(runs_dir or "runs") / self.name / Path(scene_dir).name / train_light / f"seed{seed}")
+        train_scene = self.scene_for(Path(scene_dir))
+        if not (run_dir / "metrics_stage1.json").is_file():
+            train_stage1(train_scene, train_light, run_dir, cfg, seed=seed, static=self.variant["static"],
+                         resume=bool(checkpoint_paths(run_dir, 1)), progress=False)
+        if self.variant["stage2"] and not (run_dir / "metrics_stage2.json").is_file():
+            train_stage2(train_scene, train_light, run_dir, cfg, seed=seed, resume=bool(checkpoint_paths(run_dir, 2)),
+                         progress=False)
+        lights = sorted(set(test_lights) | {x for x in available_lights(scene_dir) if x != train_light})
+        pred = write_predictions(run_dir, Path(scene_dir), train_light, cfg, method=self.name, seed=seed,
+                                 test_lights=lights, albedo_from_colour=not self.variant["stage2"],
+                                 train_scene_dir=train_scene)
+        import json
+
+        meta = json.loads((pred / "meta.json").read_text())
+        if Path(out_dir).resolve() != pred.resolve():  # the grid asked for another folder: copy the images
+            import shutil
+
+            shutil.copytree(pred, out_dir, dirs_exist_ok=True)
+            (Path(out_dir) / "meta.json").unlink(missing_ok=True)
+        keep = {k: meta[k] for k in ("timings", "device", "model_size") if k in meta}
+        keep["run_dir"] = str(run_dir)
+        return keep
+
+
+
+
+def lumimotion_factory():
+    return LumiMotionAdapter("lumimotion")
+
+
+def wo_stage2_factory():
+    return LumiMotionAdapter("wo_stage2")
+
+
+def wo_dc_factory():
+    return LumiMotionAdapter("wo_dc")
+
+
+def wo_P_factory():  # noqa: N802 (the method's name)
+    return LumiMotionAdapter("wo_P")
+
+
+def static_factory():
+    return LumiMotionAdapter("static")

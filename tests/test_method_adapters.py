@@ -1,0 +1,52 @@
+"""In-project adapters end to end on the ci dataset (train, predict, score), at a tenth of the ci budget:
+the same code paths as a full run (both stages, predictions, the benchmark's scorer), in seconds."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from baselines_adapters.registry import get_adapter, is_known
+from benchmark.score import score
+from lumibench.errors import UserError
+
+BUDGET = "0.1+cap1500"
+
+
+def test_budget_variants_parse_and_reject_nonsense():
+    a = get_adapter("lumimotion@0.25+cap10000")
+    ov = a.overrides("small")
+    assert "stage1.max_gaussians=10000" in ov and any(o.startswith("stage1.iterations=") for o in ov)
+    assert is_known("static@0.5") and is_known("wo_P") and not is_known("static@fast") and not is_known("nope@0.5")
+    with pytest.raises(UserError, match="unknown budget"):
+        get_adapter("lumimotion@fast")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["lumimotion", "wo_stage2", "wo_dc", "wo_P", "static"])
+def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method):
+    name = f"{method}@{BUDGET}"
+    runs = tmp_path / "runs" / "ci"
+    out = runs / name / ci_dataset.name / "city" / "seed0" / "predictions"
+    adapter = get_adapter(name)
+    adapter.run(ci_dataset, "city", ["sunrise"], 0, "ci", out, runs)
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["method"] == name and meta["model_size"]["gaussians"] <= 1500
+    run_dir = out.parent
+    assert (run_dir / "metrics_stage1.json").is_file()
+    assert (run_dir / "metrics_stage2.json").is_file() == (method != "wo_stage2")
+    assert (out / "envmap" / "city.hdr").is_file() == (method != "wo_stage2")
+    # P maps only where there is a deformation network; all lights but the train one are relit
+    assert (out / "p_map" / "train").is_dir() == (method != "static")
+    assert sorted(p.name for p in (out / "relight").iterdir()) == ["courtyard", "sunrise", "sunset"]
+    res = score(ci_dataset, out, "city", "sunrise")
+    for kind in ("albedo", "relight", "nvs"):
+        assert np.isfinite(res["metrics"][kind]["psnr"]), kind
+    assert res["metrics"]["roughness"]["mse"] >= 0
+    # a finished run is reused: predicting again trains nothing (the checkpoints stay as they are)
+    cks = sorted((run_dir / "checkpoints").iterdir())
+    stamp = [p.stat().st_mtime_ns for p in cks]
+    adapter.run(ci_dataset, "city", ["sunset"], 0, "ci", out, runs)
+    assert [p.stat().st_mtime_ns for p in sorted((run_dir / "checkpoints").iterdir())] == stamp
