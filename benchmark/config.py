@@ -104,10 +104,10 @@ def _strings(root: Node, key: str) -> list[str]:
 
 
 def _check_methods(methods: list[str], where: str) -> None:
-    from baselines_adapters.registry import available
+    from baselines_adapters.registry import available, is_known
 
     for m in methods:
-        if m not in available():
+        if not is_known(m):  # a registered method, or an in-project one at a budget ("lumimotion@0.25")
             raise UserError(f"{where}: unknown method '{m}' (known: {', '.join(available())})")
 
 

@@ -182,9 +182,12 @@ class _PairAlpha(torch.autograd.Function):
         g3 = torch.where(use3, g_rho, torch.zeros_like(g_rho))
         gd3 = torch.where(use3, g_depth, torch.zeros_like(g_depth))
         g2 = g_rho - g3
-        gc0 = 2.0 * g3 * u * inv
-        gc1 = 2.0 * g3 * v * inv
-        gc2 = -(2.0 * g3 * (u * u + v * v) + gd3 * depth) * inv
+        # where the fallback is used (or the ray grazes the plane, c2 ~ 0) u, v and inv can overflow to inf:
+        # select instead of multiplying by a zero gradient, which would give 0 * inf = NaN
+        zero = torch.zeros_like(g3)
+        gc0 = torch.where(use3, 2.0 * g3 * u * inv, zero)
+        gc1 = torch.where(use3, 2.0 * g3 * v * inv, zero)
+        gc2 = torch.where(use3, -(2.0 * g3 * (u * u + v * v) + gd3 * depth) * inv, zero)
         gcx = -4.0 * g2 * dx
         gcy = -4.0 * g2 * dy
         out = torch.stack([gc0, gc1, gc2, x * gc0, x * gc1, x * gc2, y * gc0, y * gc1, y * gc2, gd3 * inv,
