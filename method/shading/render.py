@@ -128,7 +128,7 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, cou
     cos_w = nl.clamp_min(0.0) * inv  # (n.l) / sum_k n_k p_k
     radiance = _incident(points, dirs, live, envmap, visibility, indirect)  # (P, S, 3)
     dw = wd * cos_w if torch.is_tensor(wd) else cos_w * wd
-    diffuse = albedo / 3.0 * (dw[..., None] * radiance).sum(1)
+    diffuse = albedo / torch.pi * (dw[..., None] * radiance).sum(1)
     specular = ((spec * cos_w)[..., None] * radiance).sum(1)
     return diffuse + specular, diffuse, specular
 
