@@ -329,3 +329,24 @@ def test_camera_inside_the_cloud_matches_reference():
     a, b = _fast(params, cam), rasterize_dense(*params, cam)
     for k in KEYS:
         torch.testing.assert_close(a[k], b[k], atol=1e-5 * max(1.0, float(b[k].abs().max())), rtol=0, msg=k)
+
+
+def test_grazing_splat_plane_through_the_camera_gives_finite_gradients():
+    """A splat whose plane contains the camera centre (the middle pixel column of an odd-width image looks
+    exactly along it): the ray-plane hit is undefined there, only the low-pass fallback may apply, and
+    neither a zero depth nor an overflowed u may turn the backward pass into NaN (it stopped a training)."""
+    import math
+
+    cam = Camera.look_at((0, -4, 0), (0, 0, 0), 15, 15, dtype=torch.float32)
+    s = math.sqrt(0.5)
+    means = torch.tensor([[0.0, 0.0, 0.0], [0.02, 0.3, 0.01]], requires_grad=True)
+    quats = torch.tensor([[s, 0.0, s, 0.0], [s, 0.0, s, 0.0]], requires_grad=True)  # normals along x
+    scales = torch.tensor([[0.3, 0.3], [0.2, 0.2]], requires_grad=True)
+    op = torch.tensor([0.9, 0.9], requires_grad=True)
+    feats = torch.ones(2, 3, requires_grad=True)
+    out = rasterize(means, quats, scales, op, feats, cam)
+    assert out.num_pairs > 0
+    (out.features.sum() + out.depth_expected.sum() + out.distortion.sum()).backward()
+    for t in (means, quats, scales, op, feats):
+        assert torch.isfinite(t.grad).all()
+    assert torch.isfinite(out.depth_expected).all() and torch.isfinite(out.distortion).all()

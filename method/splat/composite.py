@@ -22,7 +22,7 @@ class _Composite(torch.autograd.Function):
         la = torch.log1p(-alpha)
         trans = torch.exp(segs.exclusive_cumsum(la))
         w = alpha * trans
-        m = m_scale * (1.0 - m_near / depth)
+        m = m_scale * (1.0 - m_near / depth.clamp_min(1e-6))  # a degenerate hit at depth 0 must not give inf
         wm = w * m
         wmm = wm * m
         pre_w, pre_m1, pre_m2 = segs.exclusive_cumsum(w), segs.exclusive_cumsum(wm), segs.exclusive_cumsum(wmm)
@@ -61,7 +61,8 @@ class _Composite(torch.autograd.Function):
         suffix = segs.gather(segs.sum(q)) - segs.exclusive_cumsum(q) - q  # sum over k > i
         g_alpha = g_w * trans - (suffix + glogt) / (1.0 - alpha)
         g_m = gdist * 2.0 * w * (m * W - M1)
-        g_z = gd * w + g_m * (ctx.m_scale * ctx.m_near) / (depth * depth)
+        dz = depth.clamp_min(1e-6)
+        g_z = gd * w + torch.where(depth > 1e-6, g_m * (ctx.m_scale * ctx.m_near) / (dz * dz), torch.zeros_like(dz))
         return g_alpha, g_z, g_attrs, None, None, None
 
 

@@ -145,7 +145,8 @@ def _pair_terms(g, x, y):
     c1 = g[1] + x * g[4] + y * g[7]
     c2 = g[2] + x * g[5] + y * g[8]
     tiny = 1e-30 if c2.dtype == torch.float64 else 1e-20
-    c2 = torch.where(c2.abs() > tiny, c2, torch.full_like(c2, tiny))
+    grazing = c2.abs() <= tiny  # the pixel ray lies in the splat's plane: no hit, only the fallback
+    c2 = torch.where(grazing, torch.full_like(c2, tiny), c2)
     inv = 1.0 / c2
     u = c0 * inv
     v = c1 * inv
@@ -153,7 +154,7 @@ def _pair_terms(g, x, y):
     dx = x - g[10]
     dy = y - g[11]
     rho2 = 2.0 * (dx * dx + dy * dy)
-    use3 = rho3 <= rho2
+    use3 = (rho3 <= rho2) & ~grazing
     return u, v, inv, rho3, dx, dy, rho2, use3
 
 
@@ -318,12 +319,13 @@ def _candidate_spans(rows, x0, x1, y0, y1, valid, bounded, k2, width: int, near:
         c0 = col[0] + x * col[3]
         c1 = col[1] + x * col[4]
         c2 = col[2] + x * col[5]
-        c2 = torch.where(c2.abs() > tiny, c2, torch.full_like(c2, tiny))
+        grazing = c2.abs() <= tiny
+        c2 = torch.where(grazing, torch.full_like(c2, tiny), c2)
         inv = 1.0 / c2
         rho3 = (c0 * c0 + c1 * c1) * (inv * inv)
         ddx = x - col[6]
         rho2 = 2.0 * (ddx * ddx + col[7])
-        use3 = rho3 <= rho2
+        use3 = (rho3 <= rho2) & ~grazing
         alpha = torch.clamp_max(col[10] * torch.exp(-0.5 * torch.where(use3, rho3, rho2)), ALPHA_MAX)
         depth = torch.where(use3, col[8] * inv, col[9])
         ok = (alpha >= ALPHA_MIN) & (depth >= near)
