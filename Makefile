@@ -53,7 +53,7 @@ eval: setup
 	$(PY) -m benchmark eval --profile $(PROFILE) --data $(DATA) --runs $(RUNS) --results $(RESULTS) --executor $(EXECUTOR) --jobs $(JOBS) $(if $(METHODS),--methods $(METHODS),) $(if $(filter-out 0,$(KEEP_GOING)),--keep-going,)
 
 demo: setup
-	$(PY) -m generator demo --data $(DATA) --jobs $(JOBS)
+	$(PY) -m method demo --data $(DATA) --runs $(RUNS) --jobs $(JOBS)
 
 test: setup
 	$(PY) -m pytest $(PYTEST_ARGS)
