@@ -26,8 +26,7 @@ def direction_to_uv(dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(..., 3) world directions (any length > 0) -> (u, v) in [0, 1], Blender's mapping."""
     x, y, z = dirs.unbind(-1)
     u = torch.remainder(0.5 - torch.atan2(y, x) / (2.0 * math.pi), 1.0)
-    cz = (z / dirs.norm(dim=-1).clamp_min(1e-12)).clamp(-1.0, 1.0)
-    v = 1.0 - torch.acos(cz) / math.pi
+    v = 0.5 + torch.atan2(z, torch.sqrt(x * x + y * y)) / math.pi  # = 1 - acos(z / |d|) / pi, any |d|
     return u, v
 
 
@@ -178,5 +177,8 @@ class EnvSampler:
     def pdf(self, dirs: torch.Tensor) -> torch.Tensor:
         """Solid-angle density of ``sample`` at each direction."""
         row, col = texel_index(dirs, self.height, self.width)
-        idx = row * self.width + col
-        return self.prob[idx] / self.solid_angle[idx]
+        return self.pdf_of_texel(row * self.width + col)
+
+    def pdf_of_texel(self, flat_index: torch.Tensor) -> torch.Tensor:
+        """The density inside texel row * W + col (constant over the texel)."""
+        return self.prob[flat_index] / self.solid_angle[flat_index]

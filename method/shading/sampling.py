@@ -108,7 +108,8 @@ def sample_ggx(normals: torch.Tensor, view_dirs: torch.Tensor, roughness: torch.
     phi = 2.0 * math.pi * a
     h = to_world(torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), cos_h], -1), normals)
     v = view_dirs[:, None, :]
-    return 2.0 * (v * h).sum(-1, keepdim=True) * h - v
+    vh = v[..., 0] * h[..., 0] + v[..., 1] * h[..., 1] + v[..., 2] * h[..., 2]
+    return 2.0 * vh[..., None] * h - v
 
 
 _R3 = 1.2207440846057596  # the plastic number: Roberts' R3 sequence, a 3D low-discrepancy lattice
