@@ -24,4 +24,14 @@ Against 1024-spp Blender renders of a few views the default is within 1-1.5 % pe
 paper's BRDF itself (Cycles uses a height-correlated Smith G, the exact dielectric Fresnel and
 multiple-scattering GGX, 'MULTI_GGX', the Principled default the generator keeps): swapping those in
 brings the residual to ~0.5 %, but the paper's BRDF is what stage 2 fits, so we keep it.
+
+Estimator (render.py): MIS over a cosine lattice, GGX half vectors and env texels, against the
+cosine-weighted lattice alone (the paper's lattice is uniform over the hemisphere). Mean per-pixel error
+against 32768 directions, one calib_sphere test view (city with its 0.03 sr sun / courtyard, soft):
+
+    directions per pixel          64       256      1024
+    roughness 0.4,  cosine only   16.9 %   8.4 %    2.7 %   (courtyard 6.7 / 2.0 / 0.8 %)
+                    MIS           3.7 %    1.0 %    0.4 %   (courtyard 4.8 / 1.6 / 0.6 %)
+    roughness 0.15, cosine only   20.3 %   10.5 %   2.7 %
+                    MIS           3.6 %    0.9 %    0.4 %
 """
