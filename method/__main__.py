@@ -12,6 +12,7 @@ main = build_main(
     "LumiMotion: relightable dynamic 2D Gaussian splatting (train, relight).",
     {
         "train": "method.commands.train",
+        "relight": "method.commands.relight",
         "demo": "method.commands.demo",
     },
 )

@@ -1,0 +1,69 @@
+"""`python -m method relight` and the stage-2 bad-input cases, on a tiny trained run."""
+from __future__ import annotations
+
+import pytest
+
+TINY = ["stage1.iterations=12", "stage1.init_points=300", "stage1.max_gaussians=0", "stage1.warmup=4",
+        "stage1.densify_from=100", "stage1.eval_every=0", "stage2.iterations=6", "stage2.dirs_train=8",
+        "stage2.dirs_eval=8", "stage2.rays_per_iteration=512"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(ci_dataset, tmp_path_factory):
+    from method.__main__ import main
+
+    run = tmp_path_factory.mktemp("tiny_run") / "run"
+    assert main(["train", "--scene", str(ci_dataset), "--run-dir", str(run), "--no-progress"] + TINY) == 0
+    return run
+
+
+def test_train_writes_both_stages_and_predictions(tiny_run):
+    import json
+
+    assert (tiny_run / "metrics_stage2.json").is_file()
+    t = json.loads((tiny_run / "timings.json").read_text())
+    assert t["stage1"]["iterations"] == 12 and t["stage2"]["iterations"] == 6 and t["stage2"]["rays_traced"] > 0
+    meta = json.loads((tiny_run / "predictions" / "meta.json").read_text())
+    assert meta["method"] == "lumimotion" and set(meta["timings"]) == {"stage1", "stage2"}
+
+
+def test_relight_test_views_and_orbit(ci_dataset, tiny_run, tmp_path):
+    import numpy as np
+
+    from lumibench.io import read_image
+    from method.__main__ import main
+
+    out = tmp_path / "sunset"
+    assert main(["relight", "--run", str(tiny_run), "--envmap", "sunset", "--out", str(out), "--dirs", "8"]) == 0
+    stems = sorted(p.stem for p in (out / "relit").glob("*.png"))
+    assert stems == ["r_0000", "r_0001", "r_0002", "r_0003"]
+    for kind in ("albedo", "roughness", "normal"):
+        assert (out / kind / "r_0000.png").is_file(), kind
+    alb = np.load(out / "albedo" / "r_0000.npz")["image"]
+    assert alb.shape == (64, 64, 3) and np.isfinite(alb).all()
+    for name in ("envmap_estimated_clipped.png", "envmap_estimated_scaled.png", "envmap_estimated.hdr"):
+        assert (out / name).is_file(), name
+    assert read_image(out / "envmap_estimated_scaled.png").max() == pytest.approx(1.0, abs=1 / 255)
+    orbit = tmp_path / "orbit"
+    hdr = ci_dataset / "city.hdr"
+    assert main(["relight", "--run", str(tiny_run), "--envmap", str(hdr), "--views", "orbit", "--frames", "3",
+                 "--time", "0.5", "--out", str(orbit), "--dirs", "8"]) == 0
+    assert len(list((orbit / "relit").glob("orbit_*.png"))) == 3 and (orbit / "relit_orbit.gif").is_file()
+
+
+def test_relight_and_stage2_bad_input(ci_dataset, tiny_run, tmp_path, capsys):
+    from method.__main__ import main
+
+    bad = tmp_path / "bad.hdr"
+    bad.write_bytes(b"not an hdr file")
+    cases = [
+        (["relight", "--run", str(tiny_run), "--envmap", str(bad)], "bad.hdr"),
+        (["relight", "--run", str(tmp_path / "nowhere"), "--envmap", "city"], "not a run directory"),
+        (["relight", "--run", str(tiny_run), "--envmap", "moonlight"], "unknown environment map 'moonlight'"),
+        (["train", "--scene", str(ci_dataset), "--stage", "2", "--run-dir", str(tmp_path / "fresh"), "--no-progress"],
+         "no stage-1 checkpoint"),
+    ]
+    for argv, needle in cases:
+        rc = main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1 and needle in err[0], (argv, err)
