@@ -27,7 +27,6 @@ from method.splat.trace import TraceAccel, trace
 from method.stage1 import Deformed, DynamicScene
 
 FROZEN = ("means", "quats", "log_scales", "p_logit")
-RELIGHT_MIX = (0.5, 0.5, 0.0)  # cosine, GGX, env-map sampling shares when one view is relit under several maps
 
 
 class Materials:
@@ -166,8 +165,22 @@ def build_accel(d: Deformed) -> TraceAccel:
         return TraceAccel.build(d.means, d.quats, d.scales, d.opacities, alpha_min=0.01)
 
 
+def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor:
+    """One proposal for several maps: each map scaled to unit total power, then averaged, so every map's
+    bright texels (a small sun) keep their share of the samples."""
+    from method.shading.envmap import luminance, texel_solid_angles
+
+    out = None
+    for e in envs:
+        h, w = e.shape[:2]
+        power = float((luminance(e).clamp_min(0) * texel_solid_angles(h, w, e.device, e.dtype)).sum())
+        part = e / max(power, 1e-12)
+        out = part if out is None else out + part
+    return out / len(envs)
+
+
 def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, d: Deformed, mats_cfg: dict, env: torch.Tensor,
-                 n_dirs: int, generator: torch.Generator, tracer: SceneTracer | None, mix=None):
+                 n_dirs: int, generator: torch.Generator, tracer: SceneTracer | None, sampling_env=None):
     """Linear RGB of the pixels ``pix`` (flat ids) shaded under ``env``; also their albedo (linear) and roughness."""
     s2 = mats_cfg
     a = out.alpha.reshape(-1)[pix].clamp_min(1e-4)
@@ -179,8 +192,8 @@ def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, d: Deform
     pts, view = surface_points(out, camera, pix)
     vis = tracer.visibility if tracer is not None else None
     ind = tracer.indirect if (tracer is not None and tracer.use_indirect) else None
-    kw = {} if mix is None else {"mix": mix}
-    rgb = shade(pts.detach(), n, view, albedo, rough, env, n_dirs, generator, visibility=vis, indirect=ind, **kw)
+    rgb = shade(pts.detach(), n, view, albedo, rough, env, n_dirs, generator, visibility=vis, indirect=ind,
+                sampling_env=sampling_env)
     return rgb, albedo, rough
 
 
@@ -238,15 +251,17 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
            "p": (out.features[..., 7] / a.clamp_min(1e-4)).clamp(0, 1)}
     if fg.numel() and envs:
         acc = accel if accel is not None else build_accel(d)
-        # one direction set for every map (cosine + GGX lobes, no map-specific sampling), so the
-        # traversals of the first map are replayed for the others instead of traced again
+        # one direction set for every map (env samples drawn from the maps' mixture), so the traversals of
+        # the first map are replayed for the others instead of traced again
         tracer = SceneTracer(d, acc, s2["trace_offset"] * scene.extent, indirect, replay=len(envs) > 1)
         start = generator.get_state()
+        same_size = len({tuple(e.shape) for e in envs.values()}) == 1
+        mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 and same_size else None
         for name, env in envs.items():
             generator.set_state(start)
             tracer.rewind()
             rgb, _, _ = shade_pixels(out, camera, fg, d, s2, env.to(a), n_dirs, generator, tracer,
-                                     mix=RELIGHT_MIX if len(envs) > 1 else None)
+                                     sampling_env=mixture)
             img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=rgb.device)
             img[fg] = rgb
             res[f"relit:{name}"] = img.reshape(H, W, 3)

@@ -51,7 +51,8 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
           roughness: torch.Tensor, envmap: torch.Tensor, n_dirs: int = 256,
           generator: torch.Generator | None = None, visibility: Visibility | None = None,
           indirect: Indirect | None = None, *, mix=DEFAULT_MIX, diffuse_weighting: str = B.DIFFUSE_WEIGHTING,
-          max_samples: int = MAX_SAMPLES_PER_CHUNK, return_parts: bool = False):
+          max_samples: int = MAX_SAMPLES_PER_CHUNK, return_parts: bool = False,
+          sampling_env: torch.Tensor | None = None):
     """Outgoing linear radiance (P, 3) of P surface points.
 
     points (P, 3) world positions (only passed to the callables; may be None without them);
@@ -74,7 +75,9 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
         raise ValueError(f"envmap must be (H, W, 3), got {tuple(envmap.shape)}")
     counts = split_directions(n_dirs, mix)
     rough = B.clamp_roughness(roughness.reshape(P))
-    sampler = EnvSampler.build(envmap) if counts[2] > 0 else None
+    # the env strategy's proposal: this map, or another one (relighting one view under several maps with one
+    # shared direction set samples from their mixture, which stays unbiased for each map)
+    sampler = EnvSampler.build(envmap if sampling_env is None else sampling_env) if counts[2] > 0 else None
     # every random number of the call, per pixel: results do not depend on the chunking
     offsets = random_offsets((P, 5), generator, normals.device, normals.dtype)
     chunk = max(1, max_samples // n_dirs)
