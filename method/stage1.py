@@ -40,6 +40,7 @@ class DynamicScene:
         self.temperature = float(temperature)
         self.delta_colour = bool(delta_colour)  # False: the wo_dc ablation
         self.separation = bool(separation)      # False: the wo_P ablation (P = 1 always)
+        self.model_cfg: dict = {}                # the config's model section, saved in checkpoints
 
     @property
     def static(self) -> bool:

@@ -119,8 +119,10 @@ def build_scene(data: SceneData, cfg: dict, static: bool, gen: torch.Generator, 
     if not static:
         net = DeformNet(m["mlp_depth"], m["mlp_width"], m["mlp_skip"], m["pos_freqs"], m["time_freqs"],
                         m["time_net_width"], m["time_net_out"]).to(device)
-    return DynamicScene(g, net, data.center.to(device), data.extent, m["p_temperature"], m["delta_colour"],
-                        m["separation"])
+    scene = DynamicScene(g, net, data.center.to(device), data.extent, m["p_temperature"], m["delta_colour"],
+                         m["separation"])
+    scene.model_cfg = dict(m)
+    return scene
 
 
 def make_optimisers(scene: DynamicScene, cfg: dict) -> tuple[GaussianAdam, torch.optim.Optimizer | None]:
@@ -151,7 +153,7 @@ def save_checkpoint(path: Path, iteration: int, scene: DynamicScene, gopt: Gauss
         "iteration": iteration, "gaussians": scene.g.state(), "net": None if scene.net is None else scene.net.state_dict(),
         "gopt": gopt.state_dict(), "nopt": None if nopt is None else nopt.state_dict(), "density": stats.state(),
         "rng": gen.get_state(), "center": scene.center.cpu(), "extent": scene.extent,
-        "temperature": scene.temperature, **extra,
+        "temperature": scene.temperature, "model": dict(scene.model_cfg), **extra,
     }
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
@@ -168,14 +170,15 @@ def scene_from_checkpoint(ck: dict, cfg: dict, device) -> DynamicScene:
     """The model a checkpoint holds (for stage 2, relighting and evaluation)."""
     g = Gaussians({k: v.to(device) for k, v in ck["gaussians"].items()})
     net = None
+    m = ck.get("model") or cfg["model"]  # the architecture the checkpoint was trained with
     if ck["net"] is not None:
-        m = cfg["model"]
         net = DeformNet(m["mlp_depth"], m["mlp_width"], m["mlp_skip"], m["pos_freqs"], m["time_freqs"],
                         m["time_net_width"], m["time_net_out"]).to(device)
         net.load_state_dict(ck["net"])
-    m = cfg["model"]
-    return DynamicScene(g, net, ck["center"].to(device), ck["extent"], ck["temperature"], m["delta_colour"],
-                        m["separation"])
+    scene = DynamicScene(g, net, ck["center"].to(device), ck["extent"], ck["temperature"], m["delta_colour"],
+                         m["separation"])
+    scene.model_cfg = dict(m)
+    return scene
 
 
 # ------------------------------------------------------------------------------------------ the loop

@@ -115,7 +115,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
                 state = {"iteration": it, "total_iterations": total, "gaussians": scene.g.state(),
                          "net": None if scene.net is None else scene.net.state_dict(), "materials": mats.state(),
                          "opt": opt.state_dict(), "rng": gen.get_state(), "center": scene.center.cpu(),
-                         "extent": scene.extent, "temperature": scene.temperature,
+                         "extent": scene.extent, "temperature": scene.temperature, "model": dict(scene.model_cfg),
                          "seconds": prior + time.perf_counter() - t0}
                 with atomic_path(run_dir / "checkpoints" / f"stage2_{it:06d}.pt") as tmp:
                     torch.save(state, tmp)
