@@ -77,6 +77,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
     accel_cache: dict = {}
     rays_total = 0
     t0 = time.perf_counter()
+    c0 = time.process_time()
     from lumibench.progress import make_progress
 
     with make_progress(disable=not progress) as bar:
@@ -124,6 +125,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
     seconds = prior + time.perf_counter() - t0
     _merge_json(run_dir / "timings.json", {
         "stage2": {"seconds": seconds, "iterations": total, "iterations_per_s": total / max(seconds, 1e-9),
+                   "cpu_seconds_this_session": time.process_time() - c0,
                    "rays_traced": rays_total, "breakdown_s": {k: round(v, 4) for k, v in timer.sums.items()},
                    "breakdown_iterations": total - start_it, "cached_tracer_grids": len(accel_cache)},
         "device": device_name(dev), "peak_memory_bytes": peak_memory_bytes(dev), "threads": torch.get_num_threads()})
