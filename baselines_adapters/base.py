@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from benchmark.predictions import write_meta
+from lumibench.predictions import write_meta
 from lumibench.io import atomic_path, write_png
 
 

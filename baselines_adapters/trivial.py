@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from benchmark.predictions import srgb_decode, srgb_encode
-from benchmark.score import read_gt, read_lit
+from lumibench.predictions import srgb_decode, srgb_encode
+from lumibench.groundtruth import read_gt, read_lit
 from generator.envmap import read_envmap
 from lumibench import layout
 

@@ -17,9 +17,10 @@ import numpy as np
 
 from lumibench import layout
 from lumibench.errors import UserError
-from lumibench.io import read_image, sha256_file
+from lumibench.io import sha256_file
 
-from .predictions import PredictionFolder, srgb_decode, srgb_encode
+from lumibench.groundtruth import read_gt, read_lit  # noqa: F401  (re-exported: older imports)
+from lumibench.predictions import PredictionFolder, srgb_decode, srgb_encode
 from .protocol import Protocol, foreground, get_protocol
 from .results import SCHEMA_VERSION, now_iso, validate
 
@@ -61,35 +62,6 @@ def check_meta(meta: dict[str, Any], path: Path, scene: Path, train_light: str, 
     if meta.get("train_light") is not None and meta["train_light"] != train_light:
         raise UserError(f"{path}: the predictions were trained under light '{meta['train_light']}', not "
                         f"'{train_light}' (wrong predictions folder or train light?)")
-
-
-def read_gt(scene: Path, kind: str, file_path: str) -> np.ndarray:
-    """Ground truth of ``kind``: the float .npz when the generator wrote one, else the PNG (decoded).
-
-    Albedo comes back linear; roughness and dynamic_mask one channel; normals unit vectors.
-    """
-    npz = layout.gt_path(scene, kind, file_path, ".npz")
-    if npz.is_file():
-        img = read_image(npz)
-        encoded = False
-    else:
-        img = read_image(layout.gt_path(scene, kind, file_path, ".png"))
-        encoded = True
-    if kind == "albedo":
-        rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
-        return srgb_decode(rgb) if encoded else rgb
-    if kind == "normal":
-        rgb = img[..., :3]
-        return rgb * 2.0 - 1.0 if encoded else rgb
-    return img[..., :1]
-
-
-def read_lit(scene: Path, light: str, file_path: str) -> tuple[np.ndarray, np.ndarray]:
-    """(RGB in display space, alpha H x W x 1) of a rendered view."""
-    img = read_image(layout.lit_image_path(scene, light, file_path))
-    alpha = img[..., 3:4] if img.shape[-1] >= 4 else np.ones_like(img[..., :1])
-    rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
-    return rgb, alpha
 
 
 def dataset_inputs(scene: Path) -> dict[str, Any]:
@@ -145,7 +117,7 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
                         f"{', '.join(relit)} only (run it with test light {test_light})")
     if not any(kinds[k] for k in ("nvs", "albedo", "roughness", "relight")):
         raise UserError(f"no predictions to score in {pred_dir}: expected nvs/, albedo/, roughness/ or "
-                        f"relight/{test_light}/ (layout: benchmark/predictions.py)")
+                        f"relight/{test_light}/ (layout: lumibench/predictions.py)")
 
     # fail fast, before any metric runs: every present kind needs a file for every test view
     for kind, present in kinds.items():

@@ -148,7 +148,7 @@ def _albedo_psnr_aligned(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> 
 
 def stage2_metrics(scene, mats, data: SceneData, cfg: dict, gen) -> dict:
     """Training-view numbers: PSNR of the PBR render under the estimated map, aligned albedo PSNR."""
-    from benchmark.score import read_gt
+    from lumibench.groundtruth import read_gt
     from method.losses import psnr
 
     views = data.train[:: max(1, len(data.train) // 4)][:4]
@@ -176,12 +176,12 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
                       device: str = "cpu", seed: int = 0, test_lights: list[str] | None = None,
                       progress: bool = False, albedo_from_colour: bool = False,
                       train_scene_dir: Path | None = None) -> Path:
-    """The benchmark predictions of a finished run under ``run_dir/predictions`` (benchmark/predictions.py
+    """The benchmark predictions of a finished run under ``run_dir/predictions`` (lumibench/predictions.py
     layout; meta.json last). ``albedo_from_colour``: the 'without stage 2' ablation (canonical colour as
     albedo, relit with the same shading). ``scene_dir`` gives the test views and light maps; the P maps of
     the training views come from stage 1 (written by ``train_stage1``)."""
     from baselines_adapters.base import save
-    from benchmark.predictions import write_meta
+    from lumibench.predictions import write_meta
     from generator.envmap import write_hdr
     from method.data import available_lights
     from method.shading.envmap import load_envmap

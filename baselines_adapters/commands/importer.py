@@ -10,7 +10,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("import", help="turn an external method's outputs into a predictions folder",
                        description="Read the files an external method's render/eval scripts wrote (named as its "
                                    "repository writes them) and write our predictions layout "
-                                   "(benchmark/predictions.py), meta.json last, ready for 'python -m benchmark score'.")
+                                   "(lumibench/predictions.py), meta.json last, ready for 'python -m benchmark score'.")
     p.add_argument("method", choices=METHODS)
     p.add_argument("--from", dest="source", required=True, help="the method's output (model) dir")
     p.add_argument("--out", required=True, help="predictions folder to write")
@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from benchmark.predictions import write_meta
+    from lumibench.predictions import write_meta
 
     from ..external import get_method
     from ..external.common import Importer, import_run, scene_for_import

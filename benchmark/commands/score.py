@@ -10,7 +10,7 @@ from lumibench.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("score", help="score a predictions folder (layout: benchmark/predictions.py)",
+    p = sub.add_parser("score", help="score a predictions folder (layout: lumibench/predictions.py)",
                        description="Score one method's predictions for one scene and train -> test light pair.")
     p.add_argument("--data", required=True, help="the rendered scene directory (DATA/PROFILE/<scene>)")
     p.add_argument("--pred", required=True, help="the predictions folder")

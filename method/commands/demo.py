@@ -55,8 +55,8 @@ def demo_sheet(scene_dir: Path, pred: Path, train: str, test: str, path: Path) -
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from benchmark.predictions import PredictionFolder
-    from benchmark.score import read_gt, read_lit
+    from lumibench.predictions import PredictionFolder
+    from lumibench.groundtruth import read_gt, read_lit
     from generator.envmap import read_envmap
     from lumibench import layout
     from lumibench.color import linear_to_srgb

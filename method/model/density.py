@@ -9,7 +9,6 @@ from __future__ import annotations
 import torch
 
 from .gaussians import GaussianAdam, Gaussians, inverse_sigmoid
-from .gaussians import PER_GAUSSIAN  # noqa: F401  (re-exported for callers building rows)
 
 
 class DensityStats:
