@@ -8,14 +8,17 @@ from lumibench.errors import UserError
 from lumibench.io import atomic_write_text
 
 from . import charts, tables
-from .aggregate import aggregate, check_consistent, load_results
+from .aggregate import aggregate, check_consistent, load_results, published_reference
 from .grids import image_grid
 from .report import write_report
 
 
 def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title: str = "LumiBench results",
-                  grids: bool = True) -> dict[str, Path]:
-    """Write table.md/.tex/.csv, charts, grids/ and report.html into ``out_dir``; return their paths."""
+                  grids: bool = True, published: bool = True) -> dict[str, Path]:
+    """Write table.md/.tex/.csv, charts, grids/ and report.html into ``out_dir``; return their paths.
+
+    ``published``: append the paper's published rows (its own dataset and lights) to the tables as
+    labelled reference sections, never mixed into our means."""
     out = Path(out_dir)
     results = load_results(result_paths)
     if not results:
@@ -25,9 +28,10 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
     written = {
         "table.md": out / "table.md", "table.tex": out / "table.tex", "table.csv": out / "table.csv",
     }
-    atomic_write_text(written["table.md"], tables.markdown(groups, meta))
-    atomic_write_text(written["table.tex"], tables.latex(groups, meta))
-    atomic_write_text(written["table.csv"], tables.csv_text(groups, meta))
+    reference = published_reference() if published else []
+    atomic_write_text(written["table.md"], tables.markdown(groups, meta, reference=reference))
+    atomic_write_text(written["table.tex"], tables.latex(groups, meta, reference=reference))
+    atomic_write_text(written["table.csv"], tables.csv_text(groups, meta, reference=reference))
     chart_paths = charts.all_charts(results, out)
     grid_paths = []
     if grids:

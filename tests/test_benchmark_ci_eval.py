@@ -41,5 +41,9 @@ def test_eval_on_ci_dataset(ci_scene, tmp_path):
     for floor in ("lit_as_albedo", "mean_albedo"):
         assert res["noisy_gt"]["metrics"]["albedo"]["psnr"] > res[floor]["metrics"]["albedo"]["psnr"]
         assert res["noisy_gt"]["metrics"]["relight"]["lpips"] < res[floor]["metrics"]["relight"]["lpips"]
+    table = (out / "table.md").read_text()
+    # the paper's published rows come after ours, labelled, in sections of their own
+    assert table.index("### city → sunrise") < table.index("(published, on the paper's dataset)")
+    assert "*IRGS (published, on the paper's dataset)*" in table
     html = (out / "report.html").read_text()
     assert "pareto.png" in html and "lit_as_albedo" in html and len(list((out / "grids").glob("*.png"))) == 3
