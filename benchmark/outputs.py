@@ -44,6 +44,6 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
             name = f"{r['method']}_{r['scene']}_{r['train_light']}_to_{r['test_light']}_seed{r['seed']}.png"
             grid_paths.append(image_grid(r, out / "grids" / name))
     report = write_report(out / "report.html", groups, meta, results, chart_paths, grid_paths,
-                          {k: v for k, v in written.items()}, title)
+                          {k: v for k, v in written.items()}, title, reference=reference)
     return {**written, **{v.name: v for v in chart_paths.values()}, "report.html": report,
             **{f"grids/{p.name}": p for p in grid_paths}}

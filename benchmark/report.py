@@ -10,7 +10,7 @@ from lumibench.io import atomic_write_text
 
 from .aggregate import Group, best_methods
 from .results import now_iso
-from .tables import DASH, _cell, _columns, _configurations, _pretty, _runs, caption
+from .tables import DASH, _cell, _cell_text, _columns, _configurations, _method, _pretty, _runs, caption
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
@@ -58,9 +58,24 @@ def html_table(groups: Sequence[Group]) -> str:
     return "\n".join(out)
 
 
+def reference_table(reference: Sequence[Group]) -> str:
+    """The published rows, per configuration of the paper, in italics: never bold, never in our means."""
+    cols = _columns(reference)
+    out = ["<table>", "<tr><th>Method</th>" + "".join(
+        f"<th>{html.escape(c.group)} {html.escape(c.label)} {'↑' if c.higher_better else '↓'}</th>" for c in cols)
+        + "</tr>"]
+    for conf in _configurations(reference):
+        out.append(f"<tr class=conf><td colspan={len(cols) + 1}>{html.escape(_pretty(conf))}</td></tr>")
+        for g in [g for g in reference if g.configuration == conf]:
+            cells = "".join(f"<td>{html.escape(_cell_text(g, c) or DASH)}</td>" for c in cols)
+            out.append(f"<tr><td><i>{html.escape(_method(g))}</i></td>{cells}</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
 def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], results: Sequence[dict],
                  charts: dict[str, Path], grids: Sequence[Path], tables: dict[str, Path],
-                 title: str = "LumiBench results") -> Path:
+                 title: str = "LumiBench results", reference: Sequence[Group] = ()) -> Path:
     base = Path(path).parent
     failed = [r for r in results if r["status"] != "ok"]
     mc = meta.get("metric_config") or {}
@@ -75,6 +90,10 @@ def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], resu
              "<p>Tables: " + ", ".join(f"<a href='{_rel(p, base)}'>{html.escape(p.name)}</a>"
                                        for p in tables.values()) + "</p>",
              "<h2>Table</h2>", html_table(groups)]
+    if reference:
+        parts += ["<h2>Published numbers (reference, on the paper's own dataset and lights)</h2>",
+                  "<p>As published; not our runs, not comparable row for row with the table above.</p>",
+                  reference_table(reference)]
     if failed:
         parts += ["<h2 class=fail>Failed runs</h2>", "<ul>"]
         parts += [f"<li class=fail>{html.escape(r['method'])} {html.escape(r['scene'])} "

@@ -46,4 +46,5 @@ def test_eval_on_ci_dataset(ci_scene, tmp_path):
     assert table.index("### city → sunrise") < table.index("(published, on the paper's dataset)")
     assert "*IRGS (published, on the paper's dataset)*" in table
     html = (out / "report.html").read_text()
+    assert "Published numbers" in html and "<i>IRGS (published, on the paper&#x27;s dataset)</i>" in html
     assert "pareto.png" in html and "lit_as_albedo" in html and len(list((out / "grids").glob("*.png"))) == 3
