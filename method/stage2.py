@@ -266,15 +266,3 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
             img[fg] = rgb
             res[f"relit:{name}"] = img.reshape(H, W, 3)
     return res
-
-
-def estimator_rays(cfg: dict) -> int:
-    s2 = cfg["stage2"]
-    return max(1, s2["rays_per_iteration"] // s2["dirs_train"]) * s2["dirs_train"]
-
-
-def env_preview(env: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The paper's two views of an env map: clipped to [0, 1], and scaled so that its maximum is 1."""
-    return env.clamp(0, 1), env / env.max().clamp_min(1e-8)
-
-

@@ -12,7 +12,7 @@ import torch
 from lumibench.errors import UserError
 from lumibench.io import atomic_path, atomic_write_json
 from method.data import SceneData, load_scene
-from method.stage2 import (Materials, display, env_preview, freeze_geometry, make_optimiser, render_pbr_view,
+from method.stage2 import (Materials, display, freeze_geometry, make_optimiser, render_pbr_view,
                            stage2_step_loss)
 from method.train import (Timer, _finite_or_raise, _merge_json, checkpoint_paths, device_name, load_checkpoint,
                           peak_memory_bytes, scene_from_checkpoint)
@@ -231,8 +231,3 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
                       "scene": scene_dir.name, "train_light": light, "timings": timings,
                       "model_size": {"gaussians": len(scene.g), "parameters": int(n_params)}})
     return pred
-
-
-def env_images(env: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    a, b = env_preview(env.detach().cpu())
-    return a.numpy(), b.numpy()
