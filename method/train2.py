@@ -136,11 +136,11 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
 
 
 def _albedo_psnr_aligned(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
-    """PSNR of linear albedo after a per-channel median-ratio scale over the mask (the benchmark's rule)."""
+    """PSNR (display space, over the mask) of linear albedo aligned by the benchmark's per-channel median ratio."""
+    from benchmark.align import albedo_scale, apply_scale
     from lumibench.color import linear_to_srgb
 
-    scale = np.array([np.median(gt[mask, c] / np.maximum(pred[mask, c], 1e-6)) for c in range(3)])
-    p = np.clip(pred * scale, 0, 1)
+    p = apply_scale(pred, albedo_scale([pred], [gt], [mask[..., None].astype(np.float32)]))
     a, b = linear_to_srgb(p)[mask], linear_to_srgb(np.clip(gt, 0, 1))[mask]
     mse = float(np.mean((a - b) ** 2))
     return float("inf") if mse == 0 else -10 * np.log10(mse)
