@@ -7,6 +7,7 @@ silently trains with the default.
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -57,6 +58,9 @@ def _merge(base: dict, over: Any, source: str, prefix: str = "") -> None:
             base[key] = _check_value(path, base[key], value, source)
 
 
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
+
+
 def parse_overrides(items: Iterable[str]) -> dict:
     """``["stage1.iterations=500", "model.mlp_width=64"]`` -> nested dict (values parsed as YAML)."""
     out: dict = {}
@@ -68,6 +72,8 @@ def parse_overrides(items: Iterable[str]) -> dict:
             value = yaml.safe_load(raw)
         except yaml.YAMLError:
             raise UserError(f"override '{item}': cannot parse the value {raw!r}") from None
+        if isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
+            value = float(value)  # YAML 1.1 reads 3e-3 (no dot) as a string; a user means the number
         node = out
         parts = key.strip().split(".")
         if not all(parts):

@@ -8,7 +8,8 @@ the delta-colour head and opacity. Frozen: positions, rotations, scales, P and t
 A step: rasterize colour, albedo, roughness, normal and depth at a training frame's time (deferred
 shading); on randomly sampled foreground pixels, Monte Carlo over the hemisphere (method.shading.render)
 with visibility and indirect light traced against the Gaussians at that time; loss = L1 of the shaded
-pixels against the image + lambda_lc L_c of the rasterized colour + lambda_env_lower L2(lower env).
+pixels against the image + lambda_lc L_c of the rasterized colour + lambda_env_lower L2(lower env) + lambda_env_smooth
+(neighbouring texels' log radiance; not in the paper, off at full).
 Because the geometry is frozen, each frame's tracer grid is built once and cached (accel_refresh
 rebuilds them as the fine-tuned opacities drift).
 """
@@ -19,7 +20,7 @@ import torch
 from lumibench.color import linear_to_srgb, srgb_to_linear
 from method import losses
 from method.model.gaussians import inverse_sigmoid
-from method.shading.envmap import LearnableEnvMap, lower_hemisphere_l2
+from method.shading.envmap import LearnableEnvMap, log_smoothness, lower_hemisphere_l2
 from method.shading.render import shade
 from method.splat.camera import Camera
 from method.splat.rasterize import RasterOutput, rasterize
@@ -160,9 +161,12 @@ class SceneTracer:
         return comp / (1.0 - T).clamp_min(1e-4)[:, None]  # shade() weights it by (1 - V)
 
 
-def build_accel(d: Deformed) -> TraceAccel:
+def build_accel(d: Deformed, cell_factor: float = 1.0) -> TraceAccel:
+    """The tracer grid of the Gaussians at one time; cells of ``cell_factor`` x the median support radius
+    (stage2.trace_cell: trained scenes mix a few large splats with many small ones, and at 0.5 those
+    large splats fill so many cells that one build cost 7 s, BENCHMARKS.md)."""
     with torch.no_grad():
-        return TraceAccel.build(d.means, d.quats, d.scales, d.opacities, alpha_min=0.01)
+        return TraceAccel.build(d.means, d.quats, d.scales, d.opacities, alpha_min=0.01, cell_factor=cell_factor)
 
 
 def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor:
@@ -218,7 +222,7 @@ def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: d
         pick = fg[torch.randperm(fg.numel(), generator=generator)[:n_pix].to(fg.device)]
         refresh = s2["accel_refresh"]
         if frame_key not in accel_cache or (refresh and iteration % refresh == 0):
-            accel_cache[frame_key] = build_accel(d)
+            accel_cache[frame_key] = build_accel(d, s2["trace_cell"])
         tracer = SceneTracer(d, accel_cache[frame_key], s2["trace_offset"] * scene.extent, s2["indirect"])
         rgb, _, _ = shade_pixels(out, view.camera, pick, d, s2, mats.env(), s2["dirs_train"], generator, tracer)
         gt = view.rgb.reshape(-1, 3)[pick]
@@ -228,6 +232,9 @@ def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: d
     if s2["lambda_env_lower"] > 0:
         terms["env_lower"] = lower_hemisphere_l2(mats.env())
         total = total + s2["lambda_env_lower"] * terms["env_lower"]
+    if s2["lambda_env_smooth"] > 0:
+        terms["env_smooth"] = log_smoothness(mats.env())
+        total = total + s2["lambda_env_smooth"] * terms["env_smooth"]
     return total, terms, rays
 
 
@@ -250,7 +257,7 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
            "normal": out.normal / out.normal.norm(dim=-1, keepdim=True).clamp_min(1e-8),
            "p": (out.features[..., 7] / a.clamp_min(1e-4)).clamp(0, 1)}
     if fg.numel() and envs:
-        acc = accel if accel is not None else build_accel(d)
+        acc = accel if accel is not None else build_accel(d, s2["trace_cell"])
         # one direction set for every map (env samples drawn from the maps' mixture), so the traversals of
         # the first map are replayed for the others instead of traced again
         tracer = SceneTracer(d, acc, s2["trace_offset"] * scene.extent, indirect, replay=len(envs) > 1)

@@ -294,6 +294,18 @@ def test_bad_input_is_one_line_exit_2(ci_dataset, tmp_path, capsys, argv, needle
     assert rc == 2 and len(err) == 1 and needle in err[0], err
 
 
+def test_overrides_read_exponent_notation_as_numbers():
+    from lumibench.errors import UserError
+    from method.config import load_method_config, parse_overrides
+
+    # YAML 1.1 reads "3e-3" (no dot) as a string; the override means the number
+    assert parse_overrides(["stage1.lr_mlp=3e-3"]) == {"stage1": {"lr_mlp": 0.003}}
+    cfg = load_method_config("ci", ["stage1.lr_mlp=3e-3", "stage2.lr_env=1E+0"])
+    assert cfg["stage1"]["lr_mlp"] == 0.003 and cfg["stage2"]["lr_env"] == 1.0
+    with pytest.raises(UserError, match="key 'stage1.iterations' must be an integer"):
+        load_method_config("ci", ["stage1.iterations=2e3"])
+
+
 def test_existing_run_needs_resume(ci_dataset, tmp_path, capsys):
     from method.__main__ import main
 

@@ -59,11 +59,11 @@ class TraceAccel:
 
     @staticmethod
     def build(means, quats, scales, opacities, alpha_min: float = 0.01, cell_size: float | None = None,
-              max_cells: int = 1 << 21, block: int = 8) -> "TraceAccel":
+              max_cells: int = 1 << 21, block: int = 8, cell_factor: float = 0.5) -> "TraceAccel":
         """Register every splat whose opacity can reach ``alpha_min`` in the cells its support overlaps.
 
-        ``cell_size`` defaults to half the median support radius (measured: finer cells multiply the
-        entries and the build time, coarser cells the candidates per ray; see BENCHMARKS.md). ``block``:
+        ``cell_size`` defaults to ``cell_factor`` x the median support radius (measured: finer cells multiply
+        the entries and the build time, coarser cells the candidates per ray; see BENCHMARKS.md). ``block``:
         slots per block (W); 4, 8 and 16 measured within noise of each other."""
         check_splats(means, quats, scales, opacities)
         dev, dt = means.device, means.dtype
@@ -90,7 +90,7 @@ class TraceAccel:
             ext = bmax - bmin
             if cell_size is None:
                 radius = (k[live] * torch.maximum(scales[live, 0], scales[live, 1]))
-                cell_size = 0.5 * float(radius.median())
+                cell_size = float(cell_factor) * float(radius.median())
             h = max(float(cell_size), float(ext.max()) / 1024.0)
             while math.prod(max(1, math.ceil(float(e) / h)) for e in ext) > max_cells:
                 h *= 1.25
