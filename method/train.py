@@ -91,6 +91,37 @@ def carve(points: torch.Tensor, data: SceneData, fraction: float = 0.5) -> torch
     return (seen > 0) & (inside >= fraction * seen.clamp_min(1))
 
 
+def c2f_factor(iteration: int, levels: int, until: int) -> int:
+    """Image downscale factor at ``iteration`` of a coarse-to-fine schedule: 2^levels at the start, halving
+    at evenly spaced iterations, 1 (full resolution) after ``until``; 1 throughout when either is 0.
+
+    Why: the balls of `spheres` move by many pixels between frames, and a splat only receives gradient
+    from pixels it covers; on a coarse image the same motion is a few pixels and a splat covers more of
+    the object (the classic coarse-to-fine answer to large displacements), and a coarse step is cheaper."""
+    if levels <= 0 or until <= 0 or iteration > until:
+        return 1
+    return 2 ** (levels - (max(iteration, 1) - 1) * levels // until)
+
+
+def downsampled(view, factor: int):
+    """The view at 1/factor resolution: area-averaged image and alpha, the same camera with its focal
+    length and size divided (pixel centres stay consistent since cx = width / 2)."""
+    if factor == 1:
+        return view
+    import dataclasses
+
+    from method.splat.camera import Camera
+
+    cam = view.camera
+    if cam.width % factor or cam.height % factor:
+        return view
+    pool = torch.nn.functional.avg_pool2d
+    rgb = pool(view.rgb.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0).contiguous()
+    alpha = pool(view.alpha[None, None], factor)[0, 0]
+    small = Camera(cam.width // factor, cam.height // factor, cam.focal / factor, cam.w2c, cam.c2w)
+    return dataclasses.replace(view, camera=small, rgb=rgb, alpha=alpha, dynamic_mask=None)
+
+
 def init_points(data: SceneData, cfg: dict, gen: torch.Generator) -> torch.Tensor:
     s = cfg["stage1"]
     n = s["init_points"]
@@ -277,6 +308,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                     fh.write(json.dumps({"iteration": 0, "test_psnr": first, "gaussians": len(scene.g)}) + "\n")
     H, W = data.resolution
     n_views = len(data.train)
+    coarse: dict = {}  # (view, factor) -> the downsampled view of the coarse-to-fine schedule
     t0 = time.perf_counter()
     c0 = time.process_time()
     last_psnr = None
@@ -292,7 +324,15 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
             if nopt is not None:
                 for grp in nopt.param_groups:
                     grp["lr"] = expon_lr(it, total, s["lr_mlp"], s["lr_mlp"] * s["lr_mlp_final"])
-            view = data.train[int(torch.randint(n_views, (1,), generator=gen))]
+            k_view = int(torch.randint(n_views, (1,), generator=gen))
+            factor = c2f_factor(it, s["c2f_levels"], s["c2f_until"])
+            if factor == 1:
+                view = data.train[k_view]
+            else:
+                if (k_view, factor) not in coarse:
+                    coarse[(k_view, factor)] = downsampled(data.train[k_view], factor)
+                view = coarse[(k_view, factor)]
+            H, W = view.camera.height, view.camera.width
             warm = it <= s["warmup"]
             d = scene.deform(view.time, p_mode="ones" if warm else "sample", generator=gen)
             timer.lap("deform")

@@ -294,6 +294,36 @@ def test_bad_input_is_one_line_exit_2(ci_dataset, tmp_path, capsys, argv, needle
     assert rc == 2 and len(err) == 1 and needle in err[0], err
 
 
+def test_coarse_to_fine_schedule_and_downsampled_views(ci_dataset):
+    from method.data import load_scene
+    from method.splat.rasterize import rasterize
+    from method.train import c2f_factor, downsampled
+
+    # 2 levels reaching full resolution after 600: 1/4 for 1..300, 1/2 for 301..600, then full
+    assert [c2f_factor(i, 2, 600) for i in (1, 300, 301, 600, 601, 5000)] == [4, 4, 2, 2, 1, 1]
+    assert {c2f_factor(i, 0, 600) for i in (1, 300)} == {1} and c2f_factor(1, 2, 0) == 1
+    data = load_scene(ci_dataset, "city", [1.0, 1.0, 1.0], torch.device("cpu"))
+    v = data.train[0]
+    small = downsampled(v, 2)
+    H, W = v.camera.height, v.camera.width
+    assert small.camera.width == W // 2 and small.rgb.shape == (H // 2, W // 2, 3)
+    assert torch.allclose(small.rgb.mean((0, 1)), v.rgb.mean((0, 1)), atol=1e-5)
+    assert torch.allclose(small.alpha[3, 5], v.alpha[6:8, 10:12].mean())
+    # the same splats rendered into the halved camera land where the full render, area-averaged, has them
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    means = data.center + (torch.rand(n, 3, generator=g) - 0.5) * data.extent
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1)
+    scales = torch.full((n, 2), 0.08 * data.extent)
+    opac = torch.full((n,), 0.8)
+    feats = torch.rand(n, 3, generator=g)
+    full = rasterize(means, quats, scales, opac, feats, v.camera).features
+    half = rasterize(means, quats, scales, opac, feats, small.camera).features
+    pooled = torch.nn.functional.avg_pool2d(full.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
+    # (measured: 0.045 of the spread; a half-pixel shift of the principal point gives 0.17, focal x 1.1 0.28)
+    assert (half - pooled).abs().mean() < 0.1 * (pooled - pooled.mean((0, 1))).abs().mean()
+
+
 def test_overrides_read_exponent_notation_as_numbers():
     from lumibench.errors import UserError
     from method.config import load_method_config, parse_overrides
