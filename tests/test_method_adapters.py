@@ -19,6 +19,13 @@ def test_budget_variants_parse_and_reject_nonsense():
     a = get_adapter("lumimotion@0.25+cap10000")
     ov = a.overrides("small")
     assert "stage1.max_gaussians=10000" in ov and any(o.startswith("stage1.iterations=") for o in ov)
+    # every iteration-indexed setting shrinks with the budget, the coarse-to-fine schedule too
+    from method.config import load_method_config
+
+    full = load_method_config("small")["stage1"]
+    assert f"stage1.iterations={round(full['iterations'] * 0.25)}" in ov
+    assert f"stage1.c2f_until={round(full['c2f_until'] * 0.25)}" in ov
+    assert not any(o.startswith("stage1.c2f_until=") for o in get_adapter("lumimotion@0.5").overrides("ci"))
     assert is_known("static@0.5") and is_known("wo_P") and not is_known("static@fast") and not is_known("nope@0.5")
     with pytest.raises(UserError, match="unknown budget"):
         get_adapter("lumimotion@fast")
