@@ -8,8 +8,7 @@ the delta-colour head and opacity. Frozen: positions, rotations, scales, P and t
 A step: rasterize colour, albedo, roughness, normal and depth at a training frame's time (deferred
 shading); on randomly sampled foreground pixels, Monte Carlo over the hemisphere (method.shading.render)
 with visibility and indirect light traced against the Gaussians at that time; loss = L1 of the shaded
-pixels against the image + lambda_lc L_c of the rasterized colour + lambda_env_lower L2(lower env) + lambda_env_smooth
-(neighbouring texels' log radiance; not in the paper, off at full).
+pixels against the image + lambda_lc L_c of the rasterized colour + lambda_env_lower L2(lower env).
 Because the geometry is frozen, each frame's tracer grid is built once and cached (accel_refresh
 rebuilds them as the fine-tuned opacities drift).
 """
@@ -20,7 +19,7 @@ import torch
 from lumibench.color import linear_to_srgb, srgb_to_linear
 from method import losses
 from method.model.gaussians import inverse_sigmoid
-from method.shading.envmap import LearnableEnvMap, log_smoothness, lower_hemisphere_l2
+from method.shading.envmap import LearnableEnvMap, lower_hemisphere_l2
 from method.shading.render import shade
 from method.splat.camera import Camera
 from method.splat.rasterize import RasterOutput, rasterize
@@ -232,9 +231,6 @@ def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: d
     if s2["lambda_env_lower"] > 0:
         terms["env_lower"] = lower_hemisphere_l2(mats.env())
         total = total + s2["lambda_env_lower"] * terms["env_lower"]
-    if s2["lambda_env_smooth"] > 0:
-        terms["env_smooth"] = log_smoothness(mats.env())
-        total = total + s2["lambda_env_smooth"] * terms["env_smooth"]
     return total, terms, rays
 
 

@@ -65,19 +65,6 @@ def lower_hemisphere_l2(env: torch.Tensor) -> torch.Tensor:
     return env[(h + 1) // 2:].square().mean()
 
 
-def log_smoothness(env: torch.Tensor) -> torch.Tensor:
-    """Mean squared difference of log radiance between neighbouring texels (longitude wraps around).
-
-    Not in the paper: with few rays per iteration each texel is sampled a handful of times, Adam's
-    normalised steps turn that noise into a random walk of isolated texels, and this term damps it while
-    costing a compact bright source (a sun) only at its rim. Off at ``full``.
-    """
-    lg = env.clamp_min(1e-8).log()
-    horiz = (lg - torch.roll(lg, 1, dims=1)).square().mean()
-    vert = (lg[1:] - lg[:-1]).square().mean() if env.shape[0] > 1 else lg.new_zeros(())
-    return horiz + vert
-
-
 # ------------------------------------------------------------------------------------------- loading
 
 def resample(img, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH) -> np.ndarray:
