@@ -16,6 +16,7 @@ the random generator, so on the CPU a resumed run equals an uninterrupted one.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import platform
@@ -33,6 +34,7 @@ from method.data import SceneData, load_scene
 from method.model.deform import DeformNet
 from method.model.density import DensityStats, densify_and_prune, reset_opacity
 from method.model.gaussians import GaussianAdam, Gaussians
+from method.splat.camera import Camera
 from method.stage1 import DynamicScene, render, stage1_loss
 
 
@@ -108,10 +110,6 @@ def downsampled(view, factor: int):
     length and size divided (pixel centres stay consistent since cx = width / 2)."""
     if factor == 1:
         return view
-    import dataclasses
-
-    from method.splat.camera import Camera
-
     cam = view.camera
     if cam.width % factor or cam.height % factor:
         return view
