@@ -12,7 +12,7 @@ import numpy as np
 
 from lumibench.io import atomic_path
 
-from .aggregate import gaussian_count, metric_value, training_seconds
+from .aggregate import gaussian_count, is_not_run, metric_value, training_seconds
 
 QUALITY = (("relight.psnr", "relight PSNR (dB) ↑", True), ("albedo.lpips", "albedo LPIPS ↓", False))
 
@@ -104,8 +104,9 @@ def _draw_failures(ax, results: Sequence[dict], methods: Sequence[str], colours:
     """A red cross per failed run on the lower edge, so failures stay visible.
 
     ``xpos`` gives a method's x in data coordinates (its mean); methods without one go on the left.
+    An external method that has not been run is not a failure (the tables list it as "not run").
     """
-    failed = [r for r in results if r["status"] != "ok"]
+    failed = [r for r in results if r["status"] != "ok" and not is_not_run(r)]
     for i, m in enumerate(methods):
         n = sum(1 for r in failed if r["method"] == m)
         if not n:

@@ -106,3 +106,22 @@ def test_charts_and_report_written(tmp_path):
         assert link in html
     assert "Failed runs" in html and "RuntimeError: boom" in html
     assert re.search(r"<td class=best>29\.50 ± 1\.12</td>", html)
+
+
+def test_chart_failure_marks_skip_methods_not_run():
+    labels = []
+
+    class Ax:  # records what _draw_failures would draw
+        transAxes = None
+
+        def scatter(self, *args, **kwargs):
+            labels.append(kwargs["label"])
+
+        def get_xaxis_transform(self):
+            return None
+
+    res = [{"method": "irgs", "status": "failed", "error": "not run: export the scene first"},
+           {"method": "r3dgs", "status": "not_run"},
+           {"method": "ours", "status": "failed", "error": "NaN at iteration 3"}]
+    charts._draw_failures(Ax(), res, ["irgs", "r3dgs", "ours"], {})
+    assert labels == ["ours: 1 failed (no value)"]
