@@ -99,7 +99,6 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
 def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, counts, offsets, visibility,
                  indirect, weighting):
     n_cos, n_ggx, n_env = counts
-    P = normals.shape[0]
     with torch.no_grad():
         nd, vd, rd = normals.detach(), view_dirs.detach(), rough.detach()
         parts = [sample_hemisphere(nd, n_cos, cosine=True, rotation=offsets[:, 0:1])]
