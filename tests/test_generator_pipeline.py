@@ -327,14 +327,17 @@ def test_killed_run_resumes_to_identical_files(ci_dataset, tmp_path):
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     records = data / "ci" / ci_dataset.name / ".frames" / "train"
     deadline = time.time() + 120
-    while time.time() < deadline and len(list(records.glob("*.json"))) < 5 and proc.poll() is None:
+    def finished_records():  # a kill during a record's atomic write leaves a .tmp-*.json beside them
+        return sorted(p for p in records.glob("*.json") if not p.name.startswith("."))
+
+    while time.time() < deadline and len(finished_records()) < 5 and proc.poll() is None:
         time.sleep(0.05)
     assert proc.poll() is None, "the run finished before it could be killed"
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     scene = data / "ci" / ci_dataset.name
     assert not layout.is_complete(scene)
-    done = sorted(records.glob("*.json"))
+    done = finished_records()
     assert 5 <= len(done) < 16
     for rec in done:  # a frame with a record has all its files; the frame in flight has no record
         f = f"train/{rec.stem}"
