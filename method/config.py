@@ -133,5 +133,7 @@ def _validate(cfg: dict) -> None:
     for key in ("checkpoint_every", "densify_every", "log_every"):
         if s[key] < 1:
             raise UserError(f"key 'stage1.{key}' must be >= 1 (got {s[key]})")
+    if cfg["stage2"]["pbr_loss"] not in ("l1", "l2_decorrelated"):
+        raise UserError(f"key 'stage2.pbr_loss' must be l1 or l2_decorrelated (got {cfg['stage2']['pbr_loss']!r})")
     if any(not 0 <= c <= 1 for c in cfg["data"]["background"]):
         raise UserError(f"key 'data.background' must be three values in [0, 1] (got {cfg['data']['background']})")

@@ -205,6 +205,15 @@ def display(rgb_linear: torch.Tensor) -> torch.Tensor:
     return linear_to_srgb(rgb_linear.clamp(0.0, 1.0))
 
 
+def decorrelated_l2(a: torch.Tensor, b: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """mean((a - y)(b - y)) for two independent Monte Carlo estimates a, b of the same pixels: its expectation
+    is the squared error of the estimator's mean, so its gradient is unbiased. Why not L1 at a small direction
+    budget: a sun texel that most pixels' few directions miss makes each estimate bimodal, L1 drives the
+    median (the miss) to the image, and the sun is never learned; plain L2 would add the estimator's
+    variance, which also grows with the sun (the two-sample trick of Azinovic et al., CVPR 2019)."""
+    return ((a - target) * (b - target)).mean()
+
+
 def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: dict, generator: torch.Generator,
                      accel_cache: dict, frame_key, iteration: int):
     """One stage-2 loss evaluation; returns (loss, terms, rays traced)."""
@@ -223,10 +232,16 @@ def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: d
         if frame_key not in accel_cache or (refresh and iteration % refresh == 0):
             accel_cache[frame_key] = build_accel(d, s2["trace_cell"])
         tracer = SceneTracer(d, accel_cache[frame_key], s2["trace_offset"] * scene.extent, s2["indirect"])
-        rgb, _, _ = shade_pixels(out, view.camera, pick, d, s2, mats.env(), s2["dirs_train"], generator, tracer)
         gt = view.rgb.reshape(-1, 3)[pick]
-        terms["l1_pbr"] = (display(rgb) - gt).abs().mean()
-        total = total + terms["l1_pbr"]
+        if s2["pbr_loss"] == "l1":
+            rgb, _, _ = shade_pixels(out, view.camera, pick, d, s2, mats.env(), s2["dirs_train"], generator, tracer)
+            terms["pbr"] = (display(rgb) - gt).abs().mean()
+        else:  # two independent half-budget estimates of each pixel (the same rays in all)
+            half = max(1, s2["dirs_train"] // 2)
+            rgb, _, _ = shade_pixels(out, view.camera, torch.cat([pick, pick]), d, s2, mats.env(), half, generator,
+                                     tracer)
+            terms["pbr"] = decorrelated_l2(display(rgb[: pick.numel()]), display(rgb[pick.numel():]), gt)
+        total = total + terms["pbr"]
         rays = tracer.rays
     if s2["lambda_env_lower"] > 0:
         terms["env_lower"] = lower_hemisphere_l2(mats.env())

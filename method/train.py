@@ -378,6 +378,8 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                 rec = {"iteration": it, "loss": lval, "train_psnr": train_psnr, "gaussians": len(scene.g),
                        "seconds": prior_seconds + time.perf_counter() - t0,
                        **{k: float(v.detach()) for k, v in terms.items()}}
+                if not scene.static:  # how far the separation has gone: share of Gaussians with P > 0.5
+                    rec["p_dynamic_share"] = float((scene.p_inference().detach() > 0.5).float().mean())
                 if s["eval_every"] and (it % s["eval_every"] == 0 or it == total):
                     last_psnr = evaluate_test(scene, data)
                     rec["test_psnr"] = last_psnr
