@@ -41,6 +41,21 @@ def load_trained(run_dir: Path, cfg: dict, device) -> tuple:
     return scene, Materials.from_state(ck["materials"], cfg, device)
 
 
+def record_stage2_config(run_dir: Path, cfg: dict) -> None:
+    """Put the stage-2 settings this run trains with into its config.yaml (stage 2 may be started with
+    other overrides than stage 1; relighting reads them back). The stage-1 sections stay as trained."""
+    import yaml
+
+    from lumibench.io import atomic_write_text
+
+    path = run_dir / "config.yaml"
+    rec = yaml.safe_load(path.read_text()) if path.is_file() else None
+    if not isinstance(rec, dict):
+        return
+    rec["stage2"] = dict(cfg["stage2"])
+    atomic_write_text(path, yaml.safe_dump(rec, sort_keys=False))
+
+
 def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, device: str = "cpu",
                  resume: bool = False, progress: bool = True, data: SceneData | None = None) -> dict:
     dev = torch.device(device)
@@ -69,6 +84,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
         mats = Materials.init_from(scene, cfg)
         head = freeze_geometry(scene)
         opt = make_optimiser(scene, mats, head, cfg)
+        record_stage2_config(run_dir, cfg)
     (run_dir / "failure.json").unlink(missing_ok=True)
     log_path = run_dir / "log_stage2.jsonl"
     if start_it == 0:

@@ -130,3 +130,24 @@ def test_stage2_step_with_the_decorrelated_loss(ci_dataset, tiny_run):
     assert mats.env.parameters().__next__().grad.abs().sum() > 0 and mats.albedo_logit.grad.abs().sum() > 0
     with pytest.raises(Exception, match="stage2.pbr_loss"):
         load_method_config("ci", ["stage2.pbr_loss=l3"])
+
+
+def test_stage2_records_its_own_settings_in_the_run_config(ci_dataset, tiny_run, tmp_path):
+    import shutil
+
+    import yaml
+
+    from method.config import load_method_config
+    from method.train import checkpoint_paths
+    from method.train2 import train_stage2
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    shutil.copy(checkpoint_paths(tiny_run, 1)[-1][1], run / "checkpoints")
+    shutil.copy(tiny_run / "config.yaml", run / "config.yaml")
+    before = yaml.safe_load((run / "config.yaml").read_text())
+    cfg = load_method_config("ci", TINY + ["stage2.iterations=2", "stage2.lr_env=0.123", "stage1.lr_p=0.5"])
+    train_stage2(ci_dataset, "city", run, cfg, seed=0, progress=False)
+    after = yaml.safe_load((run / "config.yaml").read_text())
+    assert after["stage2"]["lr_env"] == 0.123 and after["stage2"]["iterations"] == 2
+    assert after["stage1"] == before["stage1"] and after["run"] == before["run"]  # stage 1 ran with these
