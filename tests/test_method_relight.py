@@ -152,3 +152,19 @@ def test_stage2_records_its_own_settings_in_the_run_config(ci_dataset, tiny_run,
     after = yaml.safe_load((run / "config.yaml").read_text())
     assert after["stage2"]["lr_env"] == 0.123 and after["stage2"]["iterations"] == 2
     assert after["stage1"] == before["stage1"] and after["run"] == before["run"]  # stage 1 ran with these
+
+
+def test_score_checkpoint_matches_the_benchmark_on_the_runs_predictions(ci_dataset, tiny_run):
+    """The quick stage-2 scorer reads the same albedo and roughness numbers as `benchmark score` on the
+    predictions the run wrote (same maps, same 8-bit rounding, alignment and masks)."""
+    from benchmark.score import score as bench_score
+    from method.score_checkpoint import score
+
+    quick = score(tiny_run)
+    full = bench_score(ci_dataset, tiny_run / "predictions", "city", "sunrise")["metrics"]
+    assert quick["views"] == 4
+    assert quick["albedo_psnr"] == pytest.approx(full["albedo"]["psnr"], abs=1e-4)
+    assert quick["albedo_ssim"] == pytest.approx(full["albedo"]["ssim"], abs=1e-5)
+    assert quick["roughness_mse"] == pytest.approx(full["roughness"]["mse"], rel=1e-5)
+    colour = score(tiny_run, colour=True)  # the canonical colour is a different albedo
+    assert abs(colour["albedo_psnr"] - quick["albedo_psnr"]) > 1e-3
