@@ -135,5 +135,7 @@ def _validate(cfg: dict) -> None:
             raise UserError(f"key 'stage1.{key}' must be >= 1 (got {s[key]})")
     if cfg["stage2"]["pbr_loss"] not in ("l1", "l2_decorrelated"):
         raise UserError(f"key 'stage2.pbr_loss' must be l1 or l2_decorrelated (got {cfg['stage2']['pbr_loss']!r})")
+    if not 0 < cfg["stage2"]["lr_final_factor"] <= 1:
+        raise UserError(f"key 'stage2.lr_final_factor' must be in (0, 1] (got {cfg['stage2']['lr_final_factor']})")
     if any(not 0 <= c <= 1 for c in cfg["data"]["background"]):
         raise UserError(f"key 'data.background' must be three values in [0, 1] (got {cfg['data']['background']})")

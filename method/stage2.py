@@ -94,6 +94,24 @@ def make_optimiser(scene: DynamicScene, mats: Materials, head: list, cfg: dict) 
     return torch.optim.Adam(groups, eps=1e-15)
 
 
+MATERIAL_GROUPS = ("albedo", "roughness", "env")
+
+
+def material_lr_scale(iteration: int, total: int, final_factor: float) -> float:
+    """Exponential decay of the materials' learning rates, 1 at the start to ``final_factor`` at ``total``:
+    each step's estimate uses a few directions per pixel, and a constant rate leaves the albedo jittering
+    by that noise at the end; a decaying rate averages it over the last iterations."""
+    return float(final_factor) ** (min(max(iteration, 0), total) / max(total, 1))
+
+
+def set_material_lrs(opt: torch.optim.Optimizer, cfg: dict, iteration: int, total: int) -> None:
+    s2 = cfg["stage2"]
+    k = material_lr_scale(iteration, total, s2["lr_final_factor"])
+    for grp in opt.param_groups:
+        if grp["name"] in MATERIAL_GROUPS:
+            grp["lr"] = s2[f"lr_{grp['name']}"] * k
+
+
 def raster_materials(d: Deformed, mats: Materials, camera: Camera, background: torch.Tensor) -> RasterOutput:
     """Rasterize [colour (3), albedo (3, display), roughness (1), P (1)] with the stage-1 colour on the background."""
     feats = torch.cat([d.colours, mats.albedo_display(), mats.roughness()[:, None], d.p[:, None]], 1)

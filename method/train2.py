@@ -13,7 +13,7 @@ from lumibench.errors import UserError
 from lumibench.io import atomic_path, atomic_write_json
 from method.data import SceneData, load_scene
 from method.stage2 import (Materials, display, freeze_geometry, make_optimiser, render_pbr_view,
-                           stage2_step_loss)
+                           set_material_lrs, stage2_step_loss)
 from method.train import (Timer, _finite_or_raise, _merge_json, checkpoint_paths, device_name, load_checkpoint,
                           peak_memory_bytes, scene_from_checkpoint)
 
@@ -115,6 +115,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
                 for p in grp["params"]:
                     if p.grad is not None:
                         _finite_or_raise(run_dir, it, f"gradient of {grp['name']}", p.grad.sum(), stage=2)
+            set_material_lrs(opt, cfg, it - 1, total)
             opt.step()
             for grp in opt.param_groups:
                 for p in grp["params"]:

@@ -168,3 +168,29 @@ def test_score_checkpoint_matches_the_benchmark_on_the_runs_predictions(ci_datas
     assert quick["roughness_mse"] == pytest.approx(full["roughness"]["mse"], rel=1e-5)
     colour = score(tiny_run, colour=True)  # the canonical colour is a different albedo
     assert abs(colour["albedo_psnr"] - quick["albedo_psnr"]) > 1e-3
+
+
+def test_stage2_material_rates_decay_to_the_final_factor(ci_dataset, tiny_run, tmp_path):
+    import shutil
+
+    from lumibench.errors import UserError
+    from method.config import load_method_config
+    from method.stage2 import material_lr_scale
+    from method.train import checkpoint_paths, load_checkpoint
+    from method.train2 import train_stage2
+
+    assert material_lr_scale(0, 8, 0.01) == 1.0 and material_lr_scale(8, 8, 0.01) == pytest.approx(0.01)
+    assert material_lr_scale(4, 8, 0.01) == pytest.approx(0.1)  # exponential: the geometric midpoint
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    shutil.copy(checkpoint_paths(tiny_run, 1)[-1][1], run / "checkpoints")
+    shutil.copy(tiny_run / "config.yaml", run / "config.yaml")
+    cfg = load_method_config("ci", TINY + ["stage2.iterations=4", "stage2.lr_final_factor=0.01"])
+    train_stage2(ci_dataset, "city", run, cfg, seed=0, progress=False)
+    lrs = {g["name"]: g["lr"] for g in load_checkpoint(checkpoint_paths(run, 2)[-1][1], "cpu")["opt"]["param_groups"]}
+    k = 0.01 ** (3 / 4)  # the last step (iteration 4) used the rate of 3 / 4 of the way
+    for name in ("albedo", "roughness", "env"):
+        assert lrs[name] == pytest.approx(cfg["stage2"][f"lr_{name}"] * k), name
+    assert lrs["colour"] == pytest.approx(cfg["stage1"]["lr_colour"] * cfg["stage2"]["finetune_factor"])
+    with pytest.raises(UserError, match="stage2.lr_final_factor"):
+        load_method_config("ci", ["stage2.lr_final_factor=0"])
