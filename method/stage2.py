@@ -101,7 +101,9 @@ def material_lr_scale(iteration: int, total: int, final_factor: float) -> float:
     """Exponential decay of the materials' learning rates, 1 at the start to ``final_factor`` at ``total``:
     each step's estimate uses a few directions per pixel, and a constant rate leaves the albedo jittering
     by that noise at the end; a decaying rate averages it over the last iterations."""
-    return float(final_factor) ** (min(max(iteration, 0), total) / max(total, 1))
+    from method.train import expon_lr
+
+    return expon_lr(iteration, total, 1.0, float(final_factor))
 
 
 def set_material_lrs(opt: torch.optim.Optimizer, cfg: dict, iteration: int, total: int) -> None:
