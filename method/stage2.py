@@ -217,7 +217,7 @@ def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, d: Deform
     vis = tracer.visibility if tracer is not None else None
     ind = tracer.indirect if (tracer is not None and tracer.use_indirect) else None
     rgb = shade(pts.detach(), n, view, albedo, rough, env, n_dirs, generator, visibility=vis, indirect=ind,
-                sampling_env=sampling_env)
+                sampling_env=sampling_env, env_quadrature=bool(s2.get("env_quadrature", False)))
     return rgb, albedo, rough
 
 

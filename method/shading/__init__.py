@@ -19,6 +19,8 @@ single pixels are +-12..25 % noisy and only sums can be compared):
       sectors               0.94   1.53    2.14     1.68 %           0.75   1.23    1.89     1.50 %
     1 - F(v.h)              0.64   2.03    1.12     1.62 %           0.58   1.18    0.53     1.06 %
     none (paper's sum)      3.40   1.77    2.73     2.21 %           3.78   2.78    3.32     2.79 %
+    default + env_quadrature 0.63  1.60    0.61     1.16 %           0.65   1.05    0.43     1.00 %
+      sectors               0.97   1.57    2.09     1.69 %           0.76   1.22    1.90     1.52 %
 
 Against 1024-spp Blender renders of a few views the default is within 1-1.5 % per pixel; the rest is the
 paper's BRDF itself (Cycles uses a height-correlated Smith G, the exact dielectric Fresnel and

@@ -12,6 +12,14 @@ equal directions the cosine lattice's per-pixel error on calib_sphere is 3-8x la
 
 Gradients flow to albedo, roughness, normals (through the BRDF, not the sample placement), the env
 map (through the lookup) and whatever the callables return; pdfs and directions are constants.
+
+``env_quadrature=True`` adds a control variate to the diffuse term: its unshadowed part, the integral of
+w_d rho / pi env(l) (n.l), is summed exactly over the map's texels (envmap.texel_moments), and the samples
+only estimate what shadowing changes, (L_i - env)(l) = (1 - V)(indirect - env): zero on every direction
+that nothing blocks. Still unbiased. Why: at a few directions per pixel a 0.04 sr sun is missed by most
+pixels' samples, so each pixel's estimate is bimodal and an L1 loss learns the miss (BENCHMARKS.md, "the
+PBR loss at a small direction budget"); with the quadrature every sunlit pixel sees the sun every time.
+The specular lobe stays sampled (a texel quadrature would blur a roughness-0.15 lobe).
 """
 from __future__ import annotations
 
@@ -20,7 +28,7 @@ from typing import Callable
 import torch
 
 from . import brdf as B
-from .envmap import EnvSampler, texel_index
+from .envmap import EnvSampler, cosine_weights, texel_index, texel_moments
 from .sampling import pdf_ggx, pdf_hemisphere, random_offsets, sample_env, sample_ggx, sample_hemisphere
 
 DEFAULT_MIX = (0.5, 0.25, 0.25)  # share of the directions per strategy: cosine, ggx, env
@@ -52,7 +60,7 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
           generator: torch.Generator | None = None, visibility: Visibility | None = None,
           indirect: Indirect | None = None, *, mix=DEFAULT_MIX, diffuse_weighting: str = B.DIFFUSE_WEIGHTING,
           max_samples: int = MAX_SAMPLES_PER_CHUNK, return_parts: bool = False,
-          sampling_env: torch.Tensor | None = None):
+          sampling_env: torch.Tensor | None = None, env_quadrature: bool = False):
     """Outgoing linear radiance (P, 3) of P surface points.
 
     points (P, 3) world positions (only passed to the callables; may be None without them);
@@ -62,6 +70,7 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
     visibility(origins (R, 3), dirs (R, 3)) -> (R,) in [0, 1]; indirect(origins, dirs) -> (R, 3) radiance
     of what blocks the ray; both are called only on directions that can contribute (above the surface,
     non-zero BRDF), in chunks. return_parts: also the diffuse and specular parts, as a dict.
+    env_quadrature: the diffuse term's unshadowed part summed over the texels (module docstring).
     """
     P = normals.shape[0]
     if normals.shape != (P, 3) or view_dirs.shape != (P, 3) or albedo.shape != (P, 3):
@@ -74,6 +83,12 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
     if envmap.dim() != 3 or envmap.shape[-1] != 3:
         raise ValueError(f"envmap must be (H, W, 3), got {tuple(envmap.shape)}")
     counts = split_directions(n_dirs, mix)
+    moments = None
+    if env_quadrature:
+        if diffuse_weighting == "fresnel":
+            raise ValueError("env_quadrature needs a diffuse weight that does not depend on the direction "
+                             "(diffuse_weighting 'albedo' or 'none')")
+        moments = texel_moments(envmap.shape[0], envmap.shape[1], device=normals.device, dtype=normals.dtype)
     rough = B.clamp_roughness(roughness.reshape(P))
     # the env strategy's proposal: this map, or another one (relighting one view under several maps with one
     # shared direction set samples from their mixture, which stays unbiased for each map)
@@ -86,7 +101,7 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
         e = min(P, s + chunk)
         rgb, dif, spe = _shade_chunk(None if points is None else points[s:e], normals[s:e], view_dirs[s:e],
                                      albedo[s:e], rough[s:e], envmap, sampler, counts, offsets[s:e], visibility,
-                                     indirect, diffuse_weighting)
+                                     indirect, diffuse_weighting, moments)
         outs.append(rgb)
         diffs.append(dif)
         specs.append(spe)
@@ -97,7 +112,7 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
 
 
 def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, counts, offsets, visibility,
-                 indirect, weighting):
+                 indirect, weighting, moments=None):
     n_cos, n_ggx, n_env = counts
     with torch.no_grad():
         nd, vd, rd = normals.detach(), view_dirs.detach(), rough.detach()
@@ -129,9 +144,15 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, cou
     spec = B.specular(nl, nv.expand_as(nl), nh, vh, r)  # (P, S)
     wd = B.diffuse_weight(nv, vh, r, weighting)  # (P, 1), (P, S) or a float
     cos_w = nl.clamp_min(0.0) * inv  # (n.l) / sum_k n_k p_k
-    radiance = _incident(points, dirs, live, envmap.reshape(h_env * w_env, -1)[texel], visibility, indirect)
+    env_l = envmap.reshape(h_env * w_env, -1)[texel]
+    radiance = _incident(points, dirs, live, env_l, visibility, indirect)
     dw = wd * cos_w if torch.is_tensor(wd) else cos_w * wd
-    diffuse = albedo / torch.pi * (dw[..., None] * radiance).sum(1)
+    if moments is None:
+        diffuse = albedo / torch.pi * (dw[..., None] * radiance).sum(1)
+    else:  # exact unshadowed irradiance + the sampled change that shadowing makes (zero where V = 1)
+        irradiance = cosine_weights(normals, moments) @ envmap.reshape(h_env * w_env, -1)  # (P, 3)
+        irradiance = irradiance * (wd if torch.is_tensor(wd) else float(wd)) * (nv > 0).to(irradiance)
+        diffuse = albedo / torch.pi * (irradiance + (dw[..., None] * (radiance - env_l)).sum(1))
     specular = ((spec * cos_w)[..., None] * radiance).sum(1)
     return diffuse + specular, diffuse, specular
 
