@@ -35,7 +35,7 @@ from method.model.deform import DeformNet
 from method.model.density import DensityStats, densify_and_prune, reset_opacity
 from method.model.gaussians import GaussianAdam, Gaussians
 from method.splat.camera import Camera
-from method.stage1 import DynamicScene, render, stage1_loss
+from method.stage1 import DynamicScene, assign_p_from_motion, render, stage1_loss
 
 
 class TrainingDiverged(UserError):
@@ -306,6 +306,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                     fh.write(json.dumps({"iteration": 0, "test_psnr": first, "gaussians": len(scene.g)}) + "\n")
     H, W = data.resolution
     n_views = len(data.train)
+    train_times = sorted({float(v.time) for v in data.train})
     coarse: dict = {}  # (view, factor) -> the downsampled view of the coarse-to-fine schedule
     t0 = time.perf_counter()
     c0 = time.process_time()
@@ -331,6 +332,12 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                     coarse[(k_view, factor)] = downsampled(data.train[k_view], factor)
                 view = coarse[(k_view, factor)]
             H, W = view.camera.height, view.camera.width
+            if s["p_from_motion"] and it == s["warmup"] + 1 and not scene.static and scene.separation:
+                info = assign_p_from_motion(scene, train_times, s["p_motion_threshold"] or None,
+                                            s["p_from_motion_logit"])
+                gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())
+                with open(log_path, "a") as fh:
+                    fh.write(json.dumps({"iteration": it, "p_from_motion": info}) + "\n")
             warm = it <= s["warmup"]
             d = scene.deform(view.time, p_mode="ones" if warm else "sample", generator=gen)
             timer.lap("deform")

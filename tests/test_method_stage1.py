@@ -168,6 +168,71 @@ def test_zeroed_network_equals_the_static_model():
     assert not torch.allclose(r1.features[..., :3], render(sta.deform(0.6), cam, bg).features[..., :3])
 
 
+class _ScriptedNet(torch.nn.Module):
+    """A deformation 'network' with known motion: Gaussians with x > 0 oscillate along x with time, every
+    Gaussian carries the same time-independent offset and rotation delta."""
+
+    offset = torch.tensor([0.05, -0.02, 0.03], dtype=torch.float64)
+    rot = torch.tensor([0.01, 0.02, 0.0, -0.01], dtype=torch.float64)
+
+    def forward(self, x, t):
+        n = x.shape[0]
+        d_mu = self.offset.expand(n, 3).clone()
+        d_mu[:, 0] += (x[:, 0] > 0).double() * 0.2 * math.sin(2 * math.pi * t)
+        return d_mu, self.rot.expand(n, 4).clone(), torch.zeros(n, 3, dtype=torch.float64)
+
+
+def test_otsu_threshold_matches_brute_force_and_splits_two_modes():
+    from method.stage1 import otsu_threshold
+
+    gen = torch.Generator().manual_seed(0)
+    v = torch.rand(37, generator=gen, dtype=torch.float64) ** 3
+
+    def between(t):
+        lo, hi = v[v < t], v[v >= t]
+        w0 = lo.numel() / v.numel()
+        return w0 * (1 - w0) * float(lo.mean() - hi.mean()) ** 2
+
+    s = v.sort().values
+    cands = [float(s[i] + s[i + 1]) / 2 for i in range(len(s) - 1)]
+    assert otsu_threshold(v) == pytest.approx(max(cands, key=between))
+    # two modes in log motion (static wobble ~0.004, movers ~0.1) are split between them
+    logm = torch.cat([math.log(0.004) + 0.3 * torch.randn(900, generator=gen),
+                      math.log(0.1) + 0.5 * torch.randn(100, generator=gen)])
+    t = math.exp(otsu_threshold(logm))
+    assert 0.012 < t < 0.04, t
+
+
+def test_p_from_motion_bakes_static_offsets_and_splits_by_motion():
+    from method.stage1 import assign_p_from_motion
+
+    sc = _tiny_scene(n=60)
+    sc.net = _ScriptedNet()
+    times = [k / 9 for k in range(10)]
+    moving = sc.g.means[:, 0].detach() > 0
+    assert 0 < int(moving.sum()) < 60
+    before = {t: sc.deform(t, fixed_p=1.0) for t in (0.0, 0.3)}
+    means0 = sc.g.means.detach().clone()
+    info = assign_p_from_motion(sc, times, threshold=0.01, logit=2.0)
+    assert info["threshold"] == 0.01
+    # the split follows the motion (RMS of 0.2 sin: 0.14 x extent), not the constant offset (0.06)
+    assert torch.equal(sc.g.t["p_logit"].detach() > 0, moving)
+    assert set(sc.g.t["p_logit"].detach().abs().tolist()) == {2.0}
+    assert info["static_share"] == pytest.approx(float((~moving).float().mean()))
+    # static Gaussians keep where the warm-up put them, now with P = 0 at every time (offset baked in) ...
+    for t, d in before.items():
+        after = sc.deform(t, fixed_p=0.0)
+        torch.testing.assert_close(after.means[~moving], d.means[~moving], rtol=0, atol=1e-12)
+        torch.testing.assert_close(after.quats[~moving], d.quats[~moving], rtol=0, atol=1e-12)
+    # ... and dynamic ones are untouched
+    torch.testing.assert_close(sc.g.means.detach()[moving], means0[moving], rtol=0, atol=0)
+    # Otsu's threshold (None) finds the same split (on a fresh copy: baking moved some static x across 0)
+    sc2 = _tiny_scene(n=60)
+    sc2.net = _ScriptedNet()
+    info = assign_p_from_motion(sc2, times, threshold=None, logit=2.0)
+    assert torch.equal(sc2.g.t["p_logit"].detach() > 0, moving), info
+
+
 # ------------------------------------------------------------------------------------------- loader
 
 def _write_rgba(path: Path, rgb, alpha):
@@ -249,6 +314,38 @@ def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path):
     train_stage1(ci_dataset, "city", other, _cfg(), seed=4, progress=False, write_outputs=False)
     c = load_checkpoint(other / "checkpoints" / "stage1_000024.pt", "cpu")
     assert not torch.equal(a["gaussians"]["colour_logit"][:100], c["gaussians"]["colour_logit"][:100])
+
+
+def test_p_from_motion_runs_at_the_warmup_end_and_resumes_across_it(ci_dataset, tmp_path):
+    """stage1.p_from_motion splits P (Otsu) at iteration warmup + 1 (logged, logits at +-p_from_motion_logit
+    moved by at most one Adam step), and a run resumed from the warm-up's last checkpoint equals the
+    uninterrupted one."""
+    from method.train import checkpoint_paths, load_checkpoint, train_stage1
+
+    torch.set_num_threads(1)
+    extra = ["stage1.iterations=8", "stage1.checkpoint_every=6", "stage1.p_from_motion=true",
+             "stage1.p_from_motion_logit=3.0"]  # the threshold by Otsu
+    full = tmp_path / "full"
+    train_stage1(ci_dataset, "city", full, _cfg(extra), seed=2, progress=False, write_outputs=False)
+    assert [i for i, _ in checkpoint_paths(full)] == [6, 8]
+    log = [json.loads(line) for line in (full / "log_stage1.jsonl").read_text().splitlines()]
+    rec = [r for r in log if "p_from_motion" in r]
+    assert len(rec) == 1 and rec[0]["iteration"] == 7  # warm-up 6
+    info = rec[0]["p_from_motion"]
+    assert 0.0 < info["static_share"] < 1.0, rec
+    assert info["motion_static_median"] < info["threshold"] < info["motion_dynamic_median"]
+    before = load_checkpoint(full / "checkpoints" / "stage1_000006.pt", "cpu")["gaussians"]["p_logit"]
+    after = load_checkpoint(full / "checkpoints" / "stage1_000008.pt", "cpu")["gaussians"]["p_logit"]
+    assert float((before + 0.01).abs().max()) < 1e-6  # untouched in the warm-up (init -0.01)
+    assert float((after.abs() - 3.0).abs().max()) < 0.1  # two Adam steps of lr_p 0.02 at most
+    part = tmp_path / "part"
+    shutil.copytree(full, part)
+    (part / "checkpoints" / "stage1_000008.pt").unlink()
+    train_stage1(ci_dataset, "city", part, _cfg(extra), seed=2, resume=True, progress=False, write_outputs=False)
+    a = load_checkpoint(full / "checkpoints" / "stage1_000008.pt", "cpu")
+    b = load_checkpoint(part / "checkpoints" / "stage1_000008.pt", "cpu")
+    for k in a["gaussians"]:
+        assert torch.equal(a["gaussians"][k], b["gaussians"][k]), k
 
 
 def test_nan_guard_stops_names_the_term_and_keeps_the_checkpoint(ci_dataset, tmp_path, monkeypatch, capsys):
