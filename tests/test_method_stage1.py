@@ -318,7 +318,7 @@ def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path):
 
 def test_p_from_motion_runs_at_the_warmup_end_and_resumes_across_it(ci_dataset, tmp_path):
     """stage1.p_from_motion splits P (Otsu) at iteration warmup + 1 (logged, logits at +-p_from_motion_logit
-    moved by at most one Adam step), and a run resumed from the warm-up's last checkpoint equals the
+    moved by at most two Adam steps), and a run resumed from the warm-up's last checkpoint equals the
     uninterrupted one."""
     from method.train import checkpoint_paths, load_checkpoint, train_stage1
 
