@@ -108,11 +108,15 @@ def material_lr_scale(iteration: int, total: int, final_factor: float) -> float:
 
 
 def set_material_lrs(opt: torch.optim.Optimizer, cfg: dict, iteration: int, total: int) -> None:
+    """The materials' rates for the step after ``iteration`` steps: decayed by ``lr_final_factor``, and the
+    env map's held at 0 for its first ``env_freeze_until`` steps (a fitted start map is kept while the
+    albedo, which starts with the training light's shading in it, adapts to it: env_fit.py)."""
     s2 = cfg["stage2"]
     k = material_lr_scale(iteration, total, s2["lr_final_factor"])
     for grp in opt.param_groups:
         if grp["name"] in MATERIAL_GROUPS:
-            grp["lr"] = s2[f"lr_{grp['name']}"] * k
+            frozen = grp["name"] == "env" and iteration < s2["env_freeze_until"]
+            grp["lr"] = 0.0 if frozen else s2[f"lr_{grp['name']}"] * k
 
 
 def raster_materials(d: Deformed, mats: Materials, camera: Camera, background: torch.Tensor) -> RasterOutput:

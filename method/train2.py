@@ -68,6 +68,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
     gen = torch.Generator().manual_seed(seed + 1_000_003)
     total = s2["iterations"]
     start_it, prior = 0, 0.0
+    env_fit_record = None
     if existing:
         ck = load_checkpoint(existing[-1][1], dev)
         scene = scene_from_checkpoint(ck, cfg, dev)
@@ -82,6 +83,13 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
         ck1 = final_stage1(run_dir, dev)
         scene = scene_from_checkpoint(ck1, cfg, dev)
         mats = Materials.init_from(scene, cfg)
+        if s2["env_init_fit"]:
+            from method.env_fit import fit_env
+            from method.shading.envmap import LearnableEnvMap
+
+            env0, env_fit_record = fit_env(scene, mats, data, cfg, gen)
+            mats.env = LearnableEnvMap(s2["env_height"], s2["env_width"], env0).to(dev)
+            prior = env_fit_record["seconds"]  # stage 2's seconds include the fit
         head = freeze_geometry(scene)
         opt = make_optimiser(scene, mats, head, cfg)
         record_stage2_config(run_dir, cfg)
@@ -89,6 +97,9 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
     log_path = run_dir / "log_stage2.jsonl"
     if start_it == 0:
         log_path.unlink(missing_ok=True)
+        if env_fit_record is not None:
+            with open(log_path, "a") as fh:
+                fh.write(json.dumps({"iteration": 0, "env_fit": env_fit_record}) + "\n")
     timer = Timer(dev)
     accel_cache: dict = {}
     rays_total = 0
@@ -143,6 +154,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
     _merge_json(run_dir / "timings.json", {
         "stage2": {"seconds": seconds, "iterations": total, "iterations_per_s": total / max(seconds, 1e-9),
                    "cpu_seconds_this_session": time.process_time() - c0,
+                   **({"env_fit_seconds": env_fit_record["seconds"]} if env_fit_record is not None else {}),
                    "rays_traced": rays_total, "breakdown_s": {k: round(v, 4) for k, v in timer.sums.items()},
                    "breakdown_iterations": total - start_it, "cached_tracer_grids": len(accel_cache)},
         "device": device_name(dev), "peak_memory_bytes": peak_memory_bytes(dev), "threads": torch.get_num_threads()})

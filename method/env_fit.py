@@ -1,0 +1,130 @@
+"""Stage 2's starting env map: one sun texel plus a uniform sky, fitted to the training images on the frozen
+stage-1 geometry (``stage2.env_init_fit``; off at ``full``, where the map starts uniform as in the paper).
+
+Why: per-Gaussian albedo can absorb any static shading, so the only force that makes the learnable map grow
+a sun is the little that moving shadows and specular highlights tell it; the albedo starts from the
+canonical colour, which already holds the sun's shading, and the map learns to agree with it. Measured at
+`small`: a map started at the ground truth's sun (50x the sky) loses it within 1,500 iterations (brightest
+texel 1.2-1.4; BENCHMARKS.md, session 10). Here a low-dimensional model breaks the ambiguity instead: over
+a few thousand training pixels, the observed radiance is albedo x irradiance / pi, and with albedo taken
+as one grey value (its texture becomes noise of a robust fit), the irradiance of "sky s everywhere + sun L
+at texel k", with visibility traced towards every texel, must explain where the scene is darker. The fit
+is a search: for every upper-hemisphere texel k and sun-to-sky ratio rho = L / s on a log grid, the
+median absolute log residual (the scale s drops out as the residuals' median); the best (k, rho) wins.
+Cost: one tracer grid and P x (H W / 2) shadow rays per fitted view (a few CPU seconds each at `small`).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+
+from lumibench.color import srgb_to_linear
+from method.shading.envmap import cosine_weights, luminance, texel_moments
+
+DEFAULT_RATIOS = tuple([0.0] + [10.0 ** (k / 10.0) for k in range(0, 41)])  # 0, then 1 ... 10^4
+
+
+def texel_directions(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(H * W, 3) unit directions through the texel centres, row-major from the top-left (``lookup``'s
+    indexing; envmap.py's orientation: u = 0.5 - atan2(y, x) / 2 pi, rows from the zenith down)."""
+    theta = (torch.arange(height, dtype=torch.float64) + 0.5) * (math.pi / height)
+    u = (torch.arange(width, dtype=torch.float64) + 0.5) / width
+    phi = (0.5 - u) * 2.0 * math.pi
+    th, ph = theta[:, None].expand(height, width), phi[None, :].expand(height, width)
+    d = torch.stack([torch.sin(th) * torch.cos(ph), torch.sin(th) * torch.sin(ph), torch.cos(th)], -1)
+    return d.reshape(-1, 3).to(device=device, dtype=dtype)
+
+
+def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, width: int,
+                ratios=DEFAULT_RATIOS) -> dict:
+    """The sun texel and sun-to-sky ratio that best explain ``radiance`` (P,) > 0 as a grey albedo times
+    the irradiance sum_j weights[:, j] env_j, env = 1 everywhere + rho at one upper-hemisphere texel.
+
+    weights (P, H * W): each texel's cosine integral at each point times that texel's visibility.
+    Returns {"texel": (row, col), "ratio": rho, "scale": s, "mad": the fit's mean absolute log residual
+    about the median, "mad_no_sun": the same for the sky alone}; s is the sky radiance for which the
+    median point's irradiance / pi is 1, so albedo = observed radiance in the median (stage 2's albedo
+    starts from the canonical colour, which reproduces the images: the start map keeps them reproduced).
+    """
+    P, n_tex = weights.shape
+    if n_tex != height * width:
+        raise ValueError(f"weights must be (P, {height * width}), got {tuple(weights.shape)}")
+    if P == 0:
+        raise ValueError("no points to fit the env map to")
+    w = weights.to(torch.float64)
+    log_y = radiance.to(torch.float64).clamp_min(1e-6).log()
+    sky = w.sum(1, keepdim=True)  # irradiance x pi of a unit sky
+    rho = torch.as_tensor(ratios, dtype=torch.float64)
+    upper = [k for k in range(height * width) if k // width < height // 2]
+    best = None
+    for k in upper:
+        e = (sky + rho[None, :] * w[:, k:k + 1]).clamp_min(1e-12)  # (P, R)
+        r = e.log() - log_y[:, None]
+        mad = (r - r.median(0).values).abs().mean(0)
+        j = int(mad.argmin())
+        if best is None or float(mad[j]) < best[0]:
+            best = (float(mad[j]), k, j, float(e[:, j].median()))
+    mad, k, j, median_e = best
+    no_sun = (sky.clamp_min(1e-12).log() - log_y[:, None])
+    no_sun_mad = float((no_sun - no_sun.median(0).values).abs().mean())
+    return {"texel": (k // width, k % width), "ratio": float(rho[j]), "scale": math.pi / median_e,
+            "mad": mad, "mad_no_sun": no_sun_mad}
+
+
+def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, scale: float) -> torch.Tensor:
+    """(H, W, 3) grey map: ``scale`` everywhere, ``scale * (1 + ratio)`` at ``texel``. Grey because the
+    albedo starts from the canonical colour, which holds the scene's colours: a coloured sky would tint
+    every render at the start (the map learns its colour in stage 2)."""
+    env = torch.full((height, width), float(scale), dtype=torch.float32)
+    env[texel] = float(scale) * (1.0 + float(ratio))
+    return env[..., None].expand(height, width, 3).contiguous()
+
+
+@torch.no_grad()
+def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict]:
+    """The sun-and-sky map fitted on ``stage2.env_fit_views`` training views x ``env_fit_pixels`` foreground
+    pixels each (random, from ``generator``), at the map size of the config; and a record of the fit."""
+    from method.stage2 import build_accel, raster_materials, surface_points
+    from method.splat.trace import trace
+
+    s2 = cfg["stage2"]
+    H, W = s2["env_height"], s2["env_width"]
+    t0, c0 = time.perf_counter(), time.process_time()
+    dev = scene.g.means.device
+    moments = texel_moments(H, W, device=dev)
+    dirs = texel_directions(H, W, device=dev)
+    n_views = min(int(s2["env_fit_views"]), len(data.train))
+    picks = torch.randperm(len(data.train), generator=generator)[:n_views].tolist()
+    weights, radiance, rays = [], [], 0
+    for k in picks:
+        v = data.train[k]
+        d = scene.deform(v.time, p_mode="inference")
+        out = raster_materials(d, mats, v.camera, data.background)
+        fg = torch.nonzero(((v.alpha > 0.5) & (out.alpha > 0.5)).reshape(-1)).squeeze(1)
+        if fg.numel() == 0:
+            continue
+        pix = fg[torch.randperm(fg.numel(), generator=generator)[: int(s2["env_fit_pixels"])].to(fg.device)]
+        pts, _ = surface_points(out, v.camera, pix)
+        n = out.normal.reshape(-1, 3)[pix]
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        cw = cosine_weights(n, moments)  # (P, H W)
+        pi_, ti = torch.nonzero(cw > 0, as_tuple=True)
+        o, dd = pts[pi_], dirs[ti]
+        T, _ = trace(d.means, d.quats, d.scales, d.opacities, None, o + s2["trace_offset"] * scene.extent * dd, dd,
+                     accel=build_accel(d, s2["trace_cell"]))
+        rays += int(o.shape[0])
+        vis = torch.zeros_like(cw)
+        vis[pi_, ti] = T.to(vis)
+        weights.append(cw * vis)
+        radiance.append(srgb_to_linear(v.rgb.reshape(-1, 3)[pix].clamp(0, 1)))
+    if not weights:
+        raise ValueError("no foreground pixels in the training views to fit the env map to")
+    rgb = torch.cat(radiance)
+    fit = fit_sun_sky(torch.cat(weights), luminance(rgb), H, W)
+    env = sun_sky_map(H, W, fit["texel"], fit["ratio"], fit["scale"]).to(dev)
+    record = {**fit, "texel": list(fit["texel"]), "points": int(rgb.shape[0]),
+              "views": len(weights), "rays": rays, "seconds": time.perf_counter() - t0,
+              "cpu_seconds": time.process_time() - c0}
+    return env, record

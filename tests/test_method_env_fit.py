@@ -1,0 +1,111 @@
+"""Stage 2's fitted start map (method/env_fit.py): the sun-and-sky search, its orientation, and the freeze."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from method.env_fit import fit_sun_sky, sun_sky_map, texel_directions
+from method.shading.envmap import cosine_weights, texel_index, texel_moments
+
+H, W = 16, 32
+
+
+def test_texel_directions_land_in_their_own_texels():
+    d = texel_directions(H, W)
+    row, col = texel_index(d, H, W)
+    assert torch.equal(row * W + col, torch.arange(H * W))
+    assert torch.allclose(d.norm(dim=-1), torch.ones(H * W), atol=1e-6)
+    assert d[0, 2] > 0.99 and d[-1, 2] < -0.99  # row 0 at the zenith
+
+
+def _synthetic_scene(sun: tuple[int, int] | None, ratio: float, n: int = 800, seed: int = 0):
+    """Points with random upward normals, each with a random block of texels occluded (an object next to
+    it), a textured albedo, and their radiance under a unit sky plus a sun texel."""
+    g = torch.Generator().manual_seed(seed)
+    nrm = torch.randn(n, 3, generator=g)
+    nrm[:, 2] = nrm[:, 2].abs() + 1.0
+    nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+    w = cosine_weights(nrm, texel_moments(H, W))
+    vis = torch.ones(n, H, W)
+    for i in range(n):
+        if torch.rand(1, generator=g) < 0.6:
+            r0 = int(torch.randint(0, H // 2, (1,), generator=g))
+            c0 = int(torch.randint(0, W, (1,), generator=g))
+            cols = [(c0 + j) % W for j in range(8)]
+            vis[i, r0:r0 + 5][:, cols] = 0.0
+    w = w * vis.reshape(n, -1)
+    env = torch.ones(H, W)
+    if sun is not None:
+        env[sun] += ratio
+    albedo = torch.exp(0.4 * torch.randn(n, generator=g)) * 0.4  # texture: +-50 % about 0.4
+    radiance = albedo * (w @ env.reshape(-1)) / math.pi
+    return w, radiance
+
+
+def test_fit_finds_the_sun_texel_and_ratio_through_texture_noise():
+    w, y = _synthetic_scene((3, 11), 80.0)
+    fit = fit_sun_sky(w, y, H, W)
+    assert tuple(fit["texel"]) == (3, 11)
+    assert 10 ** -0.15 < fit["ratio"] / 80.0 < 10 ** 0.15  # the grid's step is 10^0.1
+    assert fit["mad"] < fit["mad_no_sun"]
+    k = 3 * W + 11
+    assert float((fit["ratio"] * w[:, k] / (w.sum(1) + fit["ratio"] * w[:, k])).median()) > 0.2  # the true sun: 0.29
+    env = sun_sky_map(H, W, tuple(fit["texel"]), fit["ratio"], fit["scale"])
+    assert env.shape == (H, W, 3) and torch.equal(env[..., 0], env[..., 2])
+    e = w @ env[..., 0].reshape(-1)
+    assert float((e / math.pi).median()) == pytest.approx(1.0, rel=0.02)  # the scale: irradiance / pi = 1 in the median
+    assert int(env[..., 0].argmax()) == 3 * W + 11
+
+
+def test_fit_of_a_sunless_sky_puts_no_strong_sun_anywhere():
+    w, y = _synthetic_scene(None, 0.0)
+    fit = fit_sun_sky(w, y, H, W)
+    k = fit["texel"][0] * W + fit["texel"][1]
+    share = fit["ratio"] * w[:, k] / (w.sum(1) + fit["ratio"] * w[:, k])
+    assert float(share.median()) < 0.1  # a texel picked from the noise, lighting little (the true sun above: 0.29)
+    with pytest.raises(ValueError, match="no points"):
+        fit_sun_sky(w[:0], y[:0], H, W)
+
+
+def test_the_env_rate_is_zero_until_env_freeze_until():
+    from method.config import load_method_config
+    from method.stage2 import set_material_lrs
+
+    cfg = load_method_config("ci", ["stage2.env_freeze_until=3"])
+    p = [torch.nn.Parameter(torch.zeros(1)) for _ in range(2)]
+    opt = torch.optim.Adam([{"params": [p[0]], "name": "env", "lr": 1.0}, {"params": [p[1]], "name": "albedo", "lr": 1.0}])
+    for it, frozen in ((0, True), (2, True), (3, False), (9, False)):
+        set_material_lrs(opt, cfg, it, 10)
+        lrs = {g["name"]: g["lr"] for g in opt.param_groups}
+        assert lrs["env"] == (0.0 if frozen else cfg["stage2"]["lr_env"]), it
+        assert lrs["albedo"] == cfg["stage2"]["lr_albedo"], it
+
+
+def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path):
+    import json
+    import shutil
+
+    from method.__main__ import main
+    from method.config import load_method_config
+    from method.train import checkpoint_paths, load_checkpoint
+    from method.train2 import train_stage2
+    from tests.test_method_relight import TINY
+
+    src = tmp_path / "src"
+    assert main(["train", "--scene", str(ci_dataset), "--run-dir", str(src), "--no-progress", "--stage", "1"]
+                + TINY) == 0
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    shutil.copy(checkpoint_paths(src, 1)[-1][1], run / "checkpoints")
+    shutil.copy(src / "config.yaml", run / "config.yaml")
+    cfg = load_method_config("ci", TINY + ["stage2.iterations=2", "stage2.env_init_fit=true", "stage2.env_fit_views=2",
+                                           "stage2.env_fit_pixels=32", "stage2.env_freeze_until=2"])
+    train_stage2(ci_dataset, "city", run, cfg, seed=0, progress=False)
+    first = json.loads((run / "log_stage2.jsonl").read_text().splitlines()[0])["env_fit"]
+    assert first["views"] == 2 and first["points"] == 64 and first["rays"] > 0
+    env = load_checkpoint(checkpoint_paths(run, 2)[-1][1], "cpu")["materials"]["env"]["log_radiance"].exp()
+    want = sun_sky_map(H, W, tuple(first["texel"]), first["ratio"], first["scale"])
+    assert torch.allclose(env, want, rtol=1e-5)  # frozen for both steps: the fitted map itself
+    assert json.loads((run / "timings.json").read_text())["stage2"]["env_fit_seconds"] > 0
