@@ -11,7 +11,8 @@ as one grey value (its texture becomes noise of a robust fit), the irradiance of
 at texel k", with visibility traced towards every texel, must explain where the scene is darker. The fit
 is a search: for every upper-hemisphere texel k and sun-to-sky ratio rho = L / s on a log grid, the
 median absolute log residual (the scale s drops out as the residuals' median); the best (k, rho) wins.
-Cost: one tracer grid and P x (H W / 2) shadow rays per fitted view (a few CPU seconds each at `small`).
+A ground level (the lower hemisphere's radiance relative to the sky's) is searched the same way.
+Cost: one tracer grid and P x (H W / 2) shadow rays per fitted view (1-2 CPU seconds each at `small`).
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from lumibench.color import srgb_to_linear
 from method.shading.envmap import cosine_weights, luminance, texel_moments
 
 DEFAULT_RATIOS = tuple([0.0] + [10.0 ** (k / 10.0) for k in range(0, 41)])  # 0, then 1 ... 10^4
+DEFAULT_LOWER = (0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)  # lower-hemisphere sky / upper sky
 
 
 def texel_directions(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
@@ -38,12 +40,14 @@ def texel_directions(height: int, width: int, device=None, dtype=torch.float32) 
 
 
 def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, width: int,
-                ratios=DEFAULT_RATIOS) -> dict:
-    """The sun texel and sun-to-sky ratio that best explain ``radiance`` (P,) > 0 as a grey albedo times
-    the irradiance sum_j weights[:, j] env_j, env = 1 everywhere + rho at one upper-hemisphere texel.
+                ratios=DEFAULT_RATIOS, lower_levels=DEFAULT_LOWER) -> dict:
+    """The sun texel, sun-to-sky ratio and ground level that best explain ``radiance`` (P,) > 0 as a grey
+    albedo times the irradiance sum_j weights[:, j] env_j, env = 1 on the upper hemisphere, ``lower`` on
+    the lower one (the ground is darker than the sky; what the undersides of objects see), + rho at one
+    upper-hemisphere texel.
 
     weights (P, H * W): each texel's cosine integral at each point times that texel's visibility.
-    Returns {"texel": (row, col), "ratio": rho, "scale": s, "mad": the fit's mean absolute log residual
+    Returns {"texel": (row, col), "ratio": rho, "lower": the ground level, "scale": s, "mad": the fit's mean absolute log residual
     about the median, "mad_no_sun": the same for the sky alone}; s is the sky radiance for which the
     median point's irradiance / pi is 1, so albedo = observed radiance in the median (stage 2's albedo
     starts from the canonical colour, which reproduces the images: the start map keeps them reproduced).
@@ -55,29 +59,36 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
         raise ValueError("no points to fit the env map to")
     w = weights.to(torch.float64)
     log_y = radiance.to(torch.float64).clamp_min(1e-6).log()
-    sky = w.sum(1, keepdim=True)  # irradiance x pi of a unit sky
+    is_upper = torch.arange(height * width) // width < height // 2
+    sky_up = w[:, is_upper].sum(1, keepdim=True)  # irradiance x pi from a unit upper sky
+    sky_low = w[:, ~is_upper].sum(1, keepdim=True)
     rho = torch.as_tensor(ratios, dtype=torch.float64)
-    upper = [k for k in range(height * width) if k // width < height // 2]
+    upper = [k for k in range(height * width) if bool(is_upper[k])]
     best = None
-    for k in upper:
-        e = (sky + rho[None, :] * w[:, k:k + 1]).clamp_min(1e-12)  # (P, R)
-        r = e.log() - log_y[:, None]
-        mad = (r - r.median(0).values).abs().mean(0)
-        j = int(mad.argmin())
-        if best is None or float(mad[j]) < best[0]:
-            best = (float(mad[j]), k, j, float(e[:, j].median()))
-    mad, k, j, median_e = best
-    no_sun = (sky.clamp_min(1e-12).log() - log_y[:, None])
+    for lower in lower_levels:
+        sky = sky_up + float(lower) * sky_low
+        for k in upper:
+            e = (sky + rho[None, :] * w[:, k:k + 1]).clamp_min(1e-12)  # (P, R)
+            r = e.log() - log_y[:, None]
+            mad = (r - r.median(0).values).abs().mean(0)
+            j = int(mad.argmin())
+            if best is None or float(mad[j]) < best[0]:
+                best = (float(mad[j]), k, j, float(lower), float(e[:, j].median()))
+    mad, k, j, lower, median_e = best
+    no_sun = ((sky_up + sky_low).clamp_min(1e-12).log() - log_y[:, None])
     no_sun_mad = float((no_sun - no_sun.median(0).values).abs().mean())
-    return {"texel": (k // width, k % width), "ratio": float(rho[j]), "scale": math.pi / median_e,
-            "mad": mad, "mad_no_sun": no_sun_mad}
+    return {"texel": (k // width, k % width), "ratio": float(rho[j]), "lower": lower,
+            "scale": math.pi / median_e, "mad": mad, "mad_no_sun": no_sun_mad}
 
 
-def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, scale: float) -> torch.Tensor:
-    """(H, W, 3) grey map: ``scale`` everywhere, ``scale * (1 + ratio)`` at ``texel``. Grey because the
+def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, scale: float,
+                lower: float = 1.0) -> torch.Tensor:
+    """(H, W, 3) grey map: ``scale`` on the upper hemisphere, ``scale * lower`` on the lower one,
+    ``scale * (1 + ratio)`` at ``texel``. Grey because the
     albedo starts from the canonical colour, which holds the scene's colours: a coloured sky would tint
     every render at the start (the map learns its colour in stage 2)."""
     env = torch.full((height, width), float(scale), dtype=torch.float32)
+    env[height // 2:] *= float(lower)
     env[texel] = float(scale) * (1.0 + float(ratio))
     return env[..., None].expand(height, width, 3).contiguous()
 
@@ -123,7 +134,7 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
         raise ValueError("no foreground pixels in the training views to fit the env map to")
     rgb = torch.cat(radiance)
     fit = fit_sun_sky(torch.cat(weights), luminance(rgb), H, W)
-    env = sun_sky_map(H, W, fit["texel"], fit["ratio"], fit["scale"]).to(dev)
+    env = sun_sky_map(H, W, fit["texel"], fit["ratio"], fit["scale"], fit["lower"]).to(dev)
     record = {**fit, "texel": list(fit["texel"]), "points": int(rgb.shape[0]),
               "views": len(weights), "rays": rays, "seconds": time.perf_counter() - t0,
               "cpu_seconds": time.process_time() - c0}

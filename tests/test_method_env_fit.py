@@ -20,12 +20,13 @@ def test_texel_directions_land_in_their_own_texels():
     assert d[0, 2] > 0.99 and d[-1, 2] < -0.99  # row 0 at the zenith
 
 
-def _synthetic_scene(sun: tuple[int, int] | None, ratio: float, n: int = 800, seed: int = 0):
+def _synthetic_scene(sun: tuple[int, int] | None, ratio: float, n: int = 800, seed: int = 0, lower: float = 1.0,
+                     lift: float = 1.0):
     """Points with random upward normals, each with a random block of texels occluded (an object next to
     it), a textured albedo, and their radiance under a unit sky plus a sun texel."""
     g = torch.Generator().manual_seed(seed)
     nrm = torch.randn(n, 3, generator=g)
-    nrm[:, 2] = nrm[:, 2].abs() + 1.0
+    nrm[:, 2] = nrm[:, 2].abs() + lift  # lift 0: normals down to the horizon (they see the ground)
     nrm = nrm / nrm.norm(dim=-1, keepdim=True)
     w = cosine_weights(nrm, texel_moments(H, W))
     vis = torch.ones(n, H, W)
@@ -37,6 +38,7 @@ def _synthetic_scene(sun: tuple[int, int] | None, ratio: float, n: int = 800, se
             vis[i, r0:r0 + 5][:, cols] = 0.0
     w = w * vis.reshape(n, -1)
     env = torch.ones(H, W)
+    env[H // 2:] = lower
     if sun is not None:
         env[sun] += ratio
     albedo = torch.exp(0.4 * torch.randn(n, generator=g)) * 0.4  # texture: +-50 % about 0.4
@@ -52,11 +54,19 @@ def test_fit_finds_the_sun_texel_and_ratio_through_texture_noise():
     assert fit["mad"] < fit["mad_no_sun"]
     k = 3 * W + 11
     assert float((fit["ratio"] * w[:, k] / (w.sum(1) + fit["ratio"] * w[:, k])).median()) > 0.2  # the true sun: 0.29
-    env = sun_sky_map(H, W, tuple(fit["texel"]), fit["ratio"], fit["scale"])
+    env = sun_sky_map(H, W, tuple(fit["texel"]), fit["ratio"], fit["scale"], fit["lower"])
     assert env.shape == (H, W, 3) and torch.equal(env[..., 0], env[..., 2])
     e = w @ env[..., 0].reshape(-1)
     assert float((e / math.pi).median()) == pytest.approx(1.0, rel=0.02)  # the scale: irradiance / pi = 1 in the median
     assert int(env[..., 0].argmax()) == 3 * W + 11
+
+
+def test_fit_recovers_a_dark_ground():
+    w, y = _synthetic_scene((4, 20), 50.0, lower=0.2, lift=0.0, seed=1)
+    fit = fit_sun_sky(w, y, H, W)
+    assert tuple(fit["texel"]) == (4, 20) and fit["lower"] in (0.1, 0.2, 0.35)
+    env = sun_sky_map(H, W, tuple(fit["texel"]), fit["ratio"], fit["scale"], fit["lower"])
+    assert float(env[-1, 0, 0] / env[0, 0, 0]) == pytest.approx(fit["lower"])
 
 
 def test_fit_of_a_sunless_sky_puts_no_strong_sun_anywhere():
@@ -106,6 +116,6 @@ def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path):
     first = json.loads((run / "log_stage2.jsonl").read_text().splitlines()[0])["env_fit"]
     assert first["views"] == 2 and first["points"] == 64 and first["rays"] > 0
     env = load_checkpoint(checkpoint_paths(run, 2)[-1][1], "cpu")["materials"]["env"]["log_radiance"].exp()
-    want = sun_sky_map(H, W, tuple(first["texel"]), first["ratio"], first["scale"])
+    want = sun_sky_map(H, W, tuple(first["texel"]), first["ratio"], first["scale"], first["lower"])
     assert torch.allclose(env, want, rtol=1e-5)  # frozen for both steps: the fitted map itself
     assert json.loads((run / "timings.json").read_text())["stage2"]["env_fit_seconds"] > 0
