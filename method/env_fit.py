@@ -25,6 +25,7 @@ from lumibench.color import srgb_to_linear
 from method.shading.envmap import cosine_weights, luminance, texel_moments
 
 DEFAULT_RATIOS = tuple([0.0] + [10.0 ** (k / 10.0) for k in range(0, 41)])  # 0, then 1 ... 10^4
+LEVEL_QUANTILE = 0.99  # the map's level: irradiance / pi = 1 at this quantile of the fitted points (fit_sun_sky)
 DEFAULT_LOWER = (0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)  # lower-hemisphere sky / upper sky
 
 
@@ -49,8 +50,13 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
     weights (P, H * W): each texel's cosine integral at each point times that texel's visibility.
     Returns {"texel": (row, col), "ratio": rho, "lower": the ground level, "scale": s, "mad": the fit's mean absolute log residual
     about the median, "mad_no_sun": the same for the sky alone}; s is the sky radiance for which the
-    median point's irradiance / pi is 1, so albedo = observed radiance in the median (stage 2's albedo
-    starts from the canonical colour, which reproduces the images: the start map keeps them reproduced).
+    irradiance / pi of the most strongly lit points (the LEVEL_QUANTILE quantile) is 1.
+
+    Why that level: images fix albedo x light, not either alone. Started uniform, the learned map settles
+    where the most strongly lit surfaces reflect about their canonical colour (the albedo starts there and
+    is clamped below albedo_max), which left the albedo 0.77-0.93 x the ground truth's at `small`; the
+    same rule for the fitted map gives 1.07 x on both scenes, where "irradiance / pi = 1 at the median
+    point" gave 1.8-2.4 x too dark an albedo and relighting 2.5-5 dB worse (BENCHMARKS.md, session 10).
     """
     P, n_tex = weights.shape
     if n_tex != height * width:
@@ -73,12 +79,12 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
             mad = (r - r.median(0).values).abs().mean(0)
             j = int(mad.argmin())
             if best is None or float(mad[j]) < best[0]:
-                best = (float(mad[j]), k, j, float(lower), float(e[:, j].median()))
-    mad, k, j, lower, median_e = best
+                best = (float(mad[j]), k, j, float(lower), float(e[:, j].quantile(LEVEL_QUANTILE)))
+    mad, k, j, lower, bright_e = best
     no_sun = ((sky_up + sky_low).clamp_min(1e-12).log() - log_y[:, None])
     no_sun_mad = float((no_sun - no_sun.median(0).values).abs().mean())
     return {"texel": (k // width, k % width), "ratio": float(rho[j]), "lower": lower,
-            "scale": math.pi / median_e, "mad": mad, "mad_no_sun": no_sun_mad}
+            "scale": math.pi / bright_e, "mad": mad, "mad_no_sun": no_sun_mad}
 
 
 def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, scale: float,
