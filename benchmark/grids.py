@@ -21,9 +21,11 @@ MAX_VIEWS = 3
 
 
 def _tonemap(env: np.ndarray) -> np.ndarray:
-    """Reinhard then sRGB, normalised by the 99th percentile: bright suns and dim skies both show."""
-    x = env / max(float(np.percentile(env, 99)), 1e-6)
-    return srgb_encode(x / (1.0 + x) * 2.0)
+    """Reinhard then sRGB, normalised by the mean radiance: a sky at its mean shows mid-grey, a sun white.
+    (Normalised by the 99th percentile, a uniform sky with one sun texel, stage 2's fitted map at `small`,
+    showed as a blank white rectangle.)"""
+    x = env / max(float(np.mean(env)), 1e-6)
+    return srgb_encode(x / (1.0 + x))
 
 
 def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -> Path:
