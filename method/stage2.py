@@ -143,8 +143,10 @@ class SceneTracer:
     """Visibility and indirect light against the Gaussians at one time, with one traversal per batch of
     rays shared by both callables (shade() asks for V, then for the indirect radiance of the same rays)."""
 
-    def __init__(self, d: Deformed, accel: TraceAccel, offset: float, indirect: bool, replay: bool = False):
+    def __init__(self, d: Deformed, accel: TraceAccel, offset: float, indirect: bool, replay: bool = False,
+                 extent: float = 1.0):
         self.d, self.accel, self.offset, self.use_indirect = d, accel, offset, indirect
+        self.extent = float(extent)
         self._key = None
         self._val = None
         self.rays = 0
@@ -218,6 +220,10 @@ def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, d: Deform
     n = out.normal.reshape(-1, 3)[pix]
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     pts, view = surface_points(out, camera, pix)
+    lift = float(s2.get("normal_offset", 0.0))
+    if lift > 0.0 and tracer is not None:  # shadow rays start off the surface (no self-shadowing at grazing angles)
+        facing = torch.where((n * view).sum(-1, keepdim=True) < 0, -n, n)
+        pts = pts + (lift * tracer.extent) * facing
     vis = tracer.visibility if tracer is not None else None
     ind = tracer.indirect if (tracer is not None and tracer.use_indirect) else None
     rgb = shade(pts.detach(), n, view, albedo, rough, env, n_dirs, generator, visibility=vis, indirect=ind,
@@ -256,7 +262,8 @@ def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: d
         refresh = s2["accel_refresh"]
         if frame_key not in accel_cache or (refresh and iteration % refresh == 0):
             accel_cache[frame_key] = build_accel(d, s2["trace_cell"])
-        tracer = SceneTracer(d, accel_cache[frame_key], s2["trace_offset"] * scene.extent, s2["indirect"])
+        tracer = SceneTracer(d, accel_cache[frame_key], s2["trace_offset"] * scene.extent, s2["indirect"],
+                             extent=scene.extent)
         gt = view.rgb.reshape(-1, 3)[pick]
         if s2["pbr_loss"] == "l1":
             rgb, _, _ = shade_pixels(out, view.camera, pick, d, s2, mats.env(), s2["dirs_train"], generator, tracer)
@@ -296,7 +303,8 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
         acc = accel if accel is not None else build_accel(d, s2["trace_cell"])
         # one direction set for every map (env samples drawn from the maps' mixture), so the traversals of
         # the first map are replayed for the others instead of traced again
-        tracer = SceneTracer(d, acc, s2["trace_offset"] * scene.extent, indirect, replay=len(envs) > 1)
+        tracer = SceneTracer(d, acc, s2["trace_offset"] * scene.extent, indirect, replay=len(envs) > 1,
+                             extent=scene.extent)
         start = generator.get_state()
         same_size = len({tuple(e.shape) for e in envs.values()}) == 1
         mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 and same_size else None

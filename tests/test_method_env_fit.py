@@ -1,4 +1,5 @@
-"""Stage 2's fitted start map (method/env_fit.py): the sun-and-sky search, its orientation, and the freeze."""
+"""Stage 2 at `small` (method/env_fit.py, stage2.py): the sun-and-sky search, its orientation, the env freeze, and the
+shading points lifted off the surface (stage2.normal_offset)."""
 from __future__ import annotations
 
 import math
@@ -119,3 +120,54 @@ def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path):
     want = sun_sky_map(H, W, tuple(first["texel"]), first["ratio"], first["scale"], first["lower"])
     assert torch.allclose(env, want, rtol=1e-5)  # frozen for both steps: the fitted map itself
     assert json.loads((run / "timings.json").read_text())["stage2"]["env_fit_seconds"] > 0
+
+
+def _floor_scene(jitter: float):
+    """A floor of overlapping flat splats at z ~ 0 (heights jittered by ``jitter``), normals up."""
+    from method.model.gaussians import Gaussians
+    from method.stage1 import DynamicScene
+
+    g = torch.Generator().manual_seed(0)
+    xs = torch.linspace(-1, 1, 21)
+    pts = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    pts = torch.cat([pts, jitter * torch.randn(pts.shape[0], 1, generator=g)], 1)
+    n = pts.shape[0]
+    gs = Gaussians({"means": pts, "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                    "log_scales": torch.full((n, 2), math.log(0.08)), "opacity_logit": torch.full((n,), 4.0),
+                    "colour_logit": torch.zeros(n, 3), "p_logit": torch.full((n,), -4.0)})
+    return DynamicScene(gs, None, torch.zeros(3), 2.0)
+
+
+def test_normal_offset_removes_self_shadowing_of_a_floor_under_a_low_sun():
+    """A sun at the horizon lights a bumpy floor at a grazing angle: shadow rays that start on the surface
+    hit the neighbouring splats (shadow acne) and darken it; lifted along the normal they do not, and the
+    floor shades as it does with no visibility at all (nothing above it blocks the sky)."""
+    from method.config import load_method_config
+    from method.splat.camera import Camera
+    from method.stage2 import Materials, render_pbr_view
+
+    scene = _floor_scene(0.01)
+    env = torch.full((H, W, 3), 0.2)
+    env[7, 5] = 200.0  # just above the horizon
+    cam = Camera.look_at(torch.tensor([0.0, -1.2, 2.0]), torch.zeros(3), 32, 32)
+    means = {}
+    for lift in (0.0, 0.01):
+        cfg = load_method_config("ci", [f"stage2.normal_offset={lift}", "stage2.indirect=false"])
+        mats = Materials.init_from(scene, cfg)
+        r = render_pbr_view(scene, mats, cam, 0.0, torch.zeros(3), cfg, {"sun": env}, 64, torch.Generator().manual_seed(0))
+        fg = r["alpha"] > 0.5
+        means[lift] = float(r["relit:sun"][fg].mean())
+    cfg = load_method_config("ci", ["stage2.normal_offset=0.0"])
+    from method.shading.render import shade
+    from method.stage2 import raster_materials, surface_points
+
+    d = scene.deform(0.0)
+    out = raster_materials(d, Materials.init_from(scene, cfg), cam, torch.zeros(3))
+    pix = torch.nonzero((out.alpha > 0.5).reshape(-1)).squeeze(1)
+    pts, view = surface_points(out, cam, pix)
+    n = torch.nn.functional.normalize(out.normal.reshape(-1, 3)[pix], dim=-1)
+    albedo = torch.full((pix.numel(), 3), 0.214)  # the canonical colour 0.5, linearised
+    open_sky = float(shade(pts, n, view, albedo, torch.full((pix.numel(),), 0.75), env, 64,
+                           torch.Generator().manual_seed(0)).detach().mean())
+    assert means[0.0] < 0.8 * open_sky  # acne: the unlifted floor loses a fifth or more of its light
+    assert means[0.01] == pytest.approx(open_sky, rel=0.05)
