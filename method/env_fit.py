@@ -9,8 +9,8 @@ texel 1.2-1.4; BENCHMARKS.md, session 10). Here a low-dimensional model breaks t
 a few thousand training pixels, the observed radiance is albedo x irradiance / pi, and with albedo taken
 as one grey value (its texture becomes noise of a robust fit), the irradiance of "sky s everywhere + sun L
 at texel k", with visibility traced towards every texel, must explain where the scene is darker. The fit
-is a search: for every upper-hemisphere texel k and sun-to-sky ratio rho = L / s on a log grid, the
-median absolute log residual (the scale s drops out as the residuals' median); the best (k, rho) wins.
+is a search: for every upper-hemisphere texel k and sun-to-sky ratio rho = L / s on a log grid, the mean
+absolute log residual about the residuals' median (which absorbs the unknown scale); the best (k, rho) wins.
 A ground level (the lower hemisphere's radiance relative to the sky's) is searched the same way.
 Cost: one tracer grid and P x (H W / 2) shadow rays per fitted view (1-2 CPU seconds each at `small`).
 """
@@ -48,8 +48,8 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
     upper-hemisphere texel.
 
     weights (P, H * W): each texel's cosine integral at each point times that texel's visibility.
-    Returns {"texel": (row, col), "ratio": rho, "lower": the ground level, "scale": s, "mad": the fit's mean absolute log residual
-    about the median, "mad_no_sun": the same for the sky alone}; s is the sky radiance for which the
+    Returns {"texel": (row, col), "ratio": rho, "lower": the ground level, "scale": s, "mad": the fit's
+    mean absolute log residual about the median, "mad_no_sun": the same for the sky alone}; s is the sky radiance for which the
     irradiance / pi of the most strongly lit points (the LEVEL_QUANTILE quantile) is 1.
 
     Why that level: images fix albedo x light, not either alone. Started uniform, the learned map settles
@@ -90,9 +90,8 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
 def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, scale: float,
                 lower: float = 1.0) -> torch.Tensor:
     """(H, W, 3) grey map: ``scale`` on the upper hemisphere, ``scale * lower`` on the lower one,
-    ``scale * (1 + ratio)`` at ``texel``. Grey because the
-    albedo starts from the canonical colour, which holds the scene's colours: a coloured sky would tint
-    every render at the start (the map learns its colour in stage 2)."""
+    ``scale * (1 + ratio)`` at ``texel``. Grey because the albedo starts from the canonical colour, which
+    holds the scene's colours: a coloured sky would tint every render at the start."""
     env = torch.full((height, width), float(scale), dtype=torch.float32)
     env[height // 2:] *= float(lower)
     env[texel] = float(scale) * (1.0 + float(ratio))
