@@ -102,8 +102,7 @@ def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, s
 def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict]:
     """The sun-and-sky map fitted on ``stage2.env_fit_views`` training views x ``env_fit_pixels`` foreground
     pixels each (random, from ``generator``), at the map size of the config; and a record of the fit."""
-    from method.stage2 import build_accel, raster_materials, surface_points
-    from method.splat.trace import trace
+    from method.stage2 import SceneTracer, build_accel, raster_materials, surface_points
 
     s2 = cfg["stage2"]
     H, W = s2["env_height"], s2["env_width"]
@@ -128,8 +127,8 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
         cw = cosine_weights(n, moments)  # (P, H W)
         pi_, ti = torch.nonzero(cw > 0, as_tuple=True)
         o, dd = pts[pi_], dirs[ti]
-        T, _ = trace(d.means, d.quats, d.scales, d.opacities, None, o + s2["trace_offset"] * scene.extent * dd, dd,
-                     accel=build_accel(d, s2["trace_cell"]))
+        tracer = SceneTracer(d, build_accel(d, s2["trace_cell"]), s2["trace_offset"] * scene.extent, False)
+        T = tracer.visibility(o, dd)
         rays += int(o.shape[0])
         vis = torch.zeros_like(cw)
         vis[pi_, ti] = T.to(vis)
