@@ -102,7 +102,7 @@ def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, s
 def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict]:
     """The sun-and-sky map fitted on ``stage2.env_fit_views`` training views x ``env_fit_pixels`` foreground
     pixels each (random, from ``generator``), at the map size of the config; and a record of the fit."""
-    from method.stage2 import SceneTracer, build_accel, raster_materials, surface_points
+    from method.stage2 import SceneTracer, build_accel, lifted_points, raster_materials, surface_points
 
     s2 = cfg["stage2"]
     H, W = s2["env_height"], s2["env_width"]
@@ -121,9 +121,10 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
         if fg.numel() == 0:
             continue
         pix = fg[torch.randperm(fg.numel(), generator=generator)[: int(s2["env_fit_pixels"])].to(fg.device)]
-        pts, _ = surface_points(out, v.camera, pix)
+        pts, view = surface_points(out, v.camera, pix)
         n = out.normal.reshape(-1, 3)[pix]
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        pts = lifted_points(pts, n, view, float(s2["normal_offset"]) * scene.extent)  # as shading lifts them
         cw = cosine_weights(n, moments)  # (P, H W)
         pi_, ti = torch.nonzero(cw > 0, as_tuple=True)
         o, dd = pts[pi_], dirs[ti]

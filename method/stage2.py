@@ -209,6 +209,16 @@ def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor:
     return out / len(envs)
 
 
+def lifted_points(pts: torch.Tensor, n: torch.Tensor, view: torch.Tensor, distance: float) -> torch.Tensor:
+    """``pts`` moved ``distance`` along the normal turned to face the camera (``view`` points from the surface
+    to the camera): shadow rays then start off the surface, so a flat splat floor does not shadow itself
+    at grazing angles (stage2.normal_offset). ``distance`` 0: unchanged."""
+    if distance <= 0.0:
+        return pts
+    facing = torch.where((n * view).sum(-1, keepdim=True) < 0, -n, n)
+    return pts + distance * facing
+
+
 def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, d: Deformed, mats_cfg: dict, env: torch.Tensor,
                  n_dirs: int, generator: torch.Generator, tracer: SceneTracer | None, sampling_env=None):
     """Linear RGB of the pixels ``pix`` (flat ids) shaded under ``env``; also their albedo (linear) and roughness."""
@@ -220,10 +230,8 @@ def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, d: Deform
     n = out.normal.reshape(-1, 3)[pix]
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     pts, view = surface_points(out, camera, pix)
-    lift = float(s2.get("normal_offset", 0.0))
-    if lift > 0.0 and tracer is not None:  # shadow rays start off the surface (no self-shadowing at grazing angles)
-        facing = torch.where((n * view).sum(-1, keepdim=True) < 0, -n, n)
-        pts = pts + (lift * tracer.extent) * facing
+    if tracer is not None:
+        pts = lifted_points(pts, n, view, float(s2.get("normal_offset", 0.0)) * tracer.extent)
     vis = tracer.visibility if tracer is not None else None
     ind = tracer.indirect if (tracer is not None and tracer.use_indirect) else None
     rgb = shade(pts.detach(), n, view, albedo, rough, env, n_dirs, generator, visibility=vis, indirect=ind,

@@ -171,3 +171,39 @@ def test_normal_offset_removes_self_shadowing_of_a_floor_under_a_low_sun():
                            torch.Generator().manual_seed(0)).detach().mean())
     assert means[0.0] < 0.8 * open_sky  # acne: the unlifted floor loses a fifth or more of its light
     assert means[0.01] == pytest.approx(open_sky, rel=0.05)
+
+
+def test_the_fit_traces_from_lifted_points_as_shading_does(monkeypatch):
+    """fit_env's visibility weights come from the same lifted points as stage 2's shading: on the bumpy
+    floor under a horizon texel, the lifted fit sees that texel unshadowed (weight = its cosine weight);
+    from the surface itself the floor shadows itself (acne) and the fit would read a sun that is not there
+    as one that is hidden."""
+    from types import SimpleNamespace
+
+    import method.env_fit as env_fit
+    from method.config import load_method_config
+    from method.splat.camera import Camera
+    from method.stage2 import Materials
+
+    scene = _floor_scene(0.01)
+    cam = Camera.look_at(torch.tensor([0.0, -1.2, 2.0]), torch.zeros(3), 32, 32)
+    view = SimpleNamespace(time=0.0, camera=cam, alpha=torch.ones(32, 32), rgb=torch.full((32, 32, 3), 0.5))
+    data = SimpleNamespace(train=[view], background=torch.zeros(3))
+    captured = {}
+
+    def fake_fit(weights, radiance, h, w):
+        captured["w"] = weights
+        return {"texel": (0, 0), "ratio": 1.0, "scale": 1.0, "lower": 1.0}
+
+    monkeypatch.setattr(env_fit, "fit_sun_sky", fake_fit)
+    texel = 7 * W + 5  # just above the horizon
+    share = {}
+    for lift in (0.0, 0.01):
+        cfg = load_method_config("ci", [f"stage2.normal_offset={lift}", "stage2.env_fit_pixels=300"])
+        env_fit.fit_env(scene, Materials.init_from(scene, cfg), data, cfg, torch.Generator().manual_seed(0))
+        w = captured["w"]
+        n = torch.tensor([[0.0, 0.0, 1.0]]).expand(w.shape[0], 3)  # the floor's normals
+        open_sky = cosine_weights(n, texel_moments(H, W))[:, texel]
+        share[lift] = float(w[:, texel].sum() / open_sky.sum())
+    assert share[0.0] < 0.8  # acne: a fifth or more of the horizon texel's light lost
+    assert share[0.01] == pytest.approx(1.0, abs=0.05)
