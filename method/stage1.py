@@ -119,7 +119,8 @@ def motion_rms(scene: DynamicScene, times: list[float]) -> tuple[torch.Tensor, t
 
 
 @torch.no_grad()
-def assign_p_from_motion(scene: DynamicScene, times: list[float], threshold: float | None, logit: float) -> dict:
+def assign_p_from_motion(scene: DynamicScene, times: list[float], threshold: float | None, logit: float,
+                         relative: bool = False) -> dict:
     """Start the separation from what the warm-up learned: a Gaussian whose offset barely changes over the
     training times is static, one that moves is dynamic.
 
@@ -135,11 +136,19 @@ def assign_p_from_motion(scene: DynamicScene, times: list[float], threshold: flo
     how far the moving parts have moved by the warm-up's end differs between scenes by an order of
     magnitude (at `small`, spheres' balls 0.18 of the extent, the jumper 0.01, the static wobble 0.003 to
     0.005 in both), so no one constant separates both; the two groups are modes of the log motion.
+
+    ``relative``: motion in units of each Gaussian's largest scale instead of the extent (and the
+    threshold with it). Why: a wobble smaller than the splat itself barely changes what it draws, while
+    a part that moves is carried several times its own size; a large wall splat dragged along by the
+    network's smooth field beside a moving figure wobbles more in absolute terms than the figure's small
+    splats do (BENCHMARKS.md, session 11).
     Returns the threshold, the share marked static and the median motion of each group."""
     g = scene.g
     if scene.net is None or len(g) < 2:
         return {"static_share": 1.0}
     motion, mean_mu, mean_rot = motion_rms(scene, times)
+    if relative:
+        motion = motion * scene.extent / g.scales.max(-1).values.clamp_min(1e-12)
     if threshold is None:
         threshold = math.exp(otsu_threshold(motion.clamp_min(1e-12).log()))
     static = motion < threshold

@@ -54,6 +54,17 @@ def expon_lr(step: int, total: int, lr0: float, lr1: float) -> float:
     return math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
 
 
+def mlp_lr(iteration: int, total: int, s1: dict) -> float:
+    """The deformation network's rate: exponential decay from ``lr_mlp`` to ``lr_mlp * lr_mlp_final``, on the
+    base ``lr_mlp_warmup`` instead during the P = 1 warm-up when that is set (> 0): a slow warm-up keeps the
+    static Gaussians' wobble small for the split by motion, a faster rate afterwards lets the dynamic ones
+    catch fast motion (BENCHMARKS.md, session 11)."""
+    base = s1["lr_mlp"]
+    if s1["lr_mlp_warmup"] > 0 and iteration <= s1["warmup"]:
+        base = s1["lr_mlp_warmup"]
+    return expon_lr(iteration, total, base, base * s1["lr_mlp_final"])
+
+
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -322,7 +333,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                                           s["lr_position"] * scene.extent * s["lr_position_final"]))
             if nopt is not None:
                 for grp in nopt.param_groups:
-                    grp["lr"] = expon_lr(it, total, s["lr_mlp"], s["lr_mlp"] * s["lr_mlp_final"])
+                    grp["lr"] = mlp_lr(it, total, s)
             k_view = int(torch.randint(n_views, (1,), generator=gen))
             factor = c2f_factor(it, s["c2f_levels"], s["c2f_until"])
             if factor == 1:
@@ -334,7 +345,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
             H, W = view.camera.height, view.camera.width
             if s["p_from_motion"] and it == s["warmup"] + 1 and not scene.static and scene.separation:
                 info = assign_p_from_motion(scene, train_times, s["p_motion_threshold"] or None,
-                                            s["p_from_motion_logit"])
+                                            s["p_from_motion_logit"], s["p_motion_relative"])
                 gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())
                 with open(log_path, "a") as fh:
                     fh.write(json.dumps({"iteration": it, "p_from_motion": info}) + "\n")

@@ -233,6 +233,29 @@ def test_p_from_motion_bakes_static_offsets_and_splits_by_motion():
     assert torch.equal(sc2.g.t["p_logit"].detach() > 0, moving), info
 
 
+def test_p_from_motion_relative_measures_motion_in_each_gaussians_size():
+    """stage1.p_motion_relative: the same motion (RMS 0.14 x extent) is a wobble for a splat of size 1 and
+    motion for one of size 0.1; the largest of the two scales is the size."""
+    from method.stage1 import assign_p_from_motion
+
+    sc = _tiny_scene(n=60)
+    sc.net = _ScriptedNet()
+    times = [k / 9 for k in range(10)]
+    moving = sc.g.means[:, 0].detach() > 0
+    big = torch.arange(60) % 2 == 0
+    with torch.no_grad():
+        sc.g.t["log_scales"][:, 0] = torch.where(big, math.log(1.0), math.log(0.1)).double()
+        sc.g.t["log_scales"][:, 1] = math.log(0.01)
+    assign_p_from_motion(sc, times, threshold=0.5, logit=2.0, relative=True)
+    assert torch.equal(sc.g.t["p_logit"].detach() > 0, moving & ~big)
+    sc2 = _tiny_scene(n=60)
+    sc2.net = _ScriptedNet()
+    with torch.no_grad():
+        sc2.g.t["log_scales"].copy_(sc.g.t["log_scales"].detach())
+    assign_p_from_motion(sc2, times, threshold=0.01, logit=2.0)  # in extent units: every mover
+    assert torch.equal(sc2.g.t["p_logit"].detach() > 0, moving)
+
+
 # ------------------------------------------------------------------------------------------- loader
 
 def _write_rgba(path: Path, rgb, alpha):
@@ -346,6 +369,25 @@ def test_p_from_motion_runs_at_the_warmup_end_and_resumes_across_it(ci_dataset, 
     b = load_checkpoint(part / "checkpoints" / "stage1_000008.pt", "cpu")
     for k in a["gaussians"]:
         assert torch.equal(a["gaussians"][k], b["gaussians"][k]), k
+
+
+def test_network_rate_in_and_after_the_warmup(ci_dataset, tmp_path):
+    """stage1.lr_mlp_warmup: the network's rate follows the same exponential decay on that base until the
+    warm-up's last iteration, on lr_mlp after it; 0 keeps lr_mlp throughout."""
+    from method.train import checkpoint_paths, expon_lr, load_checkpoint, mlp_lr, train_stage1
+
+    s1 = {"lr_mlp": 4e-3, "lr_mlp_final": 0.1, "lr_mlp_warmup": 1e-3, "warmup": 6}
+    assert mlp_lr(6, 8, s1) == pytest.approx(expon_lr(6, 8, 1e-3, 1e-4))
+    assert mlp_lr(7, 8, s1) == pytest.approx(expon_lr(7, 8, 4e-3, 4e-4))
+    assert mlp_lr(6, 8, {**s1, "lr_mlp_warmup": 0.0}) == pytest.approx(expon_lr(6, 8, 4e-3, 4e-4))
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    train_stage1(ci_dataset, "city", run, _cfg(["stage1.iterations=8", "stage1.checkpoint_every=6",
+                                                "stage1.lr_mlp=4e-3", "stage1.lr_mlp_warmup=1e-3"]),
+                 seed=0, progress=False, write_outputs=False)
+    lrs = {i: load_checkpoint(p, "cpu")["nopt"]["param_groups"][0]["lr"] for i, p in checkpoint_paths(run)}
+    assert lrs[6] == pytest.approx(expon_lr(6, 8, 1e-3, 1e-4))
+    assert lrs[8] == pytest.approx(expon_lr(8, 8, 4e-3, 4e-4))
 
 
 def test_nan_guard_stops_names_the_term_and_keeps_the_checkpoint(ci_dataset, tmp_path, monkeypatch, capsys):
