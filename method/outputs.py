@@ -96,7 +96,7 @@ def write_test_renders(scene: DynamicScene, data: SceneData, out_dir: Path, tag:
         return renders, None
     sheet = np.concatenate(rows[:8], 0)
     path = out_dir.parent / f"sheet_{tag}.png"
-    _write_sheet(path, sheet, ["ground truth", "RGB", "normals", "depth", "P (blue static, orange dynamic)"])
+    _write_sheet(path, sheet, ["ground truth", "RGB", "normals", "depth", "P: static blue,\ndynamic orange"])
     return renders, path
 
 
