@@ -49,8 +49,8 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
 
     weights (P, H * W): each texel's cosine integral at each point times that texel's visibility.
     Returns {"texel": (row, col), "ratio": rho, "lower": the ground level, "scale": s, "mad": the fit's
-    mean absolute log residual about the median, "mad_no_sun": the same for the sky alone}; s is the sky radiance for which the
-    irradiance / pi of the most strongly lit points (the LEVEL_QUANTILE quantile) is 1.
+    mean absolute log residual about the median, "mad_no_sun": the same for the sky alone}; s is the sky
+    radiance for which the irradiance / pi of the most strongly lit points (the LEVEL_QUANTILE quantile) is 1.
 
     Why that level: images fix albedo x light, not either alone. Started uniform, the learned map settles
     where the most strongly lit surfaces reflect about their canonical colour (the albedo starts there and

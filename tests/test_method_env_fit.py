@@ -154,7 +154,8 @@ def test_normal_offset_removes_self_shadowing_of_a_floor_under_a_low_sun():
     for lift in (0.0, 0.01):
         cfg = load_method_config("ci", [f"stage2.normal_offset={lift}", "stage2.indirect=false"])
         mats = Materials.init_from(scene, cfg)
-        r = render_pbr_view(scene, mats, cam, 0.0, torch.zeros(3), cfg, {"sun": env}, 64, torch.Generator().manual_seed(0))
+        r = render_pbr_view(scene, mats, cam, 0.0, torch.zeros(3), cfg, {"sun": env}, 64,
+                            torch.Generator().manual_seed(0))
         fg = r["alpha"] > 0.5
         means[lift] = float(r["relit:sun"][fg].mean())
     cfg = load_method_config("ci", ["stage2.normal_offset=0.0"])
