@@ -130,6 +130,10 @@ def _validate(cfg: dict) -> None:
                         f"({s['init_points']})")
     if not 0 <= s["lambda_dssim"] <= 1:
         raise UserError(f"key 'stage1.lambda_dssim' must be in [0, 1] (got {s['lambda_dssim']})")
+    if not 0 < s["time_window_start"] <= 1:
+        raise UserError(f"key 'stage1.time_window_start' must be in (0, 1] (got {s['time_window_start']})")
+    if s["time_window_until"] < 0:
+        raise UserError(f"key 'stage1.time_window_until' must be >= 0 (got {s['time_window_until']})")
     for key in ("checkpoint_every", "densify_every", "log_every"):
         if s[key] < 1:
             raise UserError(f"key 'stage1.{key}' must be >= 1 (got {s[key]})")

@@ -116,6 +116,25 @@ def c2f_factor(iteration: int, levels: int, until: int) -> int:
     return 2 ** (levels - (max(iteration, 1) - 1) * levels // until)
 
 
+def time_window_views(times: list[float], iteration: int, start: float, until: int) -> list[int]:
+    """Indices of the training views a time-window curriculum may draw at ``iteration``: those whose time
+    lies in the first ``start`` of the time range at iteration 1, the window growing linearly to the whole
+    range at ``until``; every view when ``until`` is 0 or passed.
+
+    Why: with one view per time, a Gaussian on a fast object at one time sits elsewhere at the others, so
+    it only survives if the deformation already carries it along. Opening the times in order lets the
+    network follow the object from a time it has fitted to the next, a small step, instead of having to
+    find every position at once (spheres' small bouncing ball)."""
+    if until <= 0 or iteration >= until:
+        return list(range(len(times)))
+    lo, hi = min(times), max(times)
+    frac = start + (1.0 - start) * max(iteration - 1, 0) / until
+    limit = lo + frac * (hi - lo)
+    order = sorted(range(len(times)), key=lambda k: times[k])
+    chosen = [k for k in order if times[k] <= limit + 1e-9]
+    return chosen or order[:1]
+
+
 def downsampled(view, factor: int):
     """The view at 1/factor resolution: area-averaged image and alpha, the same camera with its focal
     length and size divided (pixel centres stay consistent since cx = width / 2)."""
@@ -318,6 +337,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
     H, W = data.resolution
     n_views = len(data.train)
     train_times = sorted({float(v.time) for v in data.train})
+    view_times = [float(v.time) for v in data.train]
     coarse: dict = {}  # (view, factor) -> the downsampled view of the coarse-to-fine schedule
     t0 = time.perf_counter()
     c0 = time.process_time()
@@ -334,7 +354,11 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
             if nopt is not None:
                 for grp in nopt.param_groups:
                     grp["lr"] = mlp_lr(it, total, s)
-            k_view = int(torch.randint(n_views, (1,), generator=gen))
+            if s["time_window_until"] and it < s["time_window_until"]:
+                pool = time_window_views(view_times, it, s["time_window_start"], s["time_window_until"])
+                k_view = pool[int(torch.randint(len(pool), (1,), generator=gen))]
+            else:
+                k_view = int(torch.randint(n_views, (1,), generator=gen))
             factor = c2f_factor(it, s["c2f_levels"], s["c2f_until"])
             if factor == 1:
                 view = data.train[k_view]

@@ -463,6 +463,43 @@ def test_coarse_to_fine_schedule_and_downsampled_views(ci_dataset):
     assert (half - pooled).abs().mean() < 0.1 * (pooled - pooled.mean((0, 1))).abs().mean()
 
 
+def test_time_window_curriculum_opens_the_times_in_order(ci_dataset, tmp_path, monkeypatch):
+    """stage1.time_window_until: before that iteration a view is drawn only from the times in the window
+    (start share of the range at iteration 1, growing linearly), after it from every view."""
+    from method.train import time_window_views, train_stage1
+
+    times = [0.5, 0.0, 1.0, 0.25, 0.75]
+    assert time_window_views(times, 1, 0.3, 100) == [1, 3]  # window [0, 0.3]
+    assert time_window_views(times, 51, 0.3, 100) == [1, 3, 0]  # 0.3 + 0.7 * 50 / 100 = 0.65
+    assert time_window_views(times, 100, 0.3, 100) == list(range(5))
+    assert time_window_views(times, 1, 0.3, 0) == list(range(5))
+    assert time_window_views(times, 1, 0.01, 100) == [1]  # never empty: the first time at least
+    drawn = []
+    real = DynamicScene.deform
+
+    def spy(self, t, *args, **kwargs):
+        drawn.append(float(t))
+        return real(self, t, *args, **kwargs)
+
+    monkeypatch.setattr(DynamicScene, "deform", spy)
+    torch.set_num_threads(1)
+
+    def times_drawn(extra):
+        drawn.clear()
+        train_stage1(ci_dataset, "city", tmp_path / f"run{len(extra)}", _cfg(["stage1.iterations=40"] + extra),
+                     seed=0, progress=False, write_outputs=False)
+        return list(drawn)
+
+    got = times_drawn(["stage1.time_window_until=30", "stage1.time_window_start=0.2"])
+    assert len(got) == 40
+    lo, hi = min(got), max(got)
+    for it, t in enumerate(got[:29], start=1):
+        assert t <= lo + (0.2 + 0.8 * (it - 1) / 30) * (hi - lo) + 1e-6, (it, t)
+    assert max(got[:10]) < lo + 0.5 * (hi - lo)  # the rule is not vacuous on this data ...
+    free = times_drawn([])
+    assert max(free[:10]) > lo + 0.5 * (hi - lo)  # ... a run without the window draws late times early
+
+
 def test_overrides_read_exponent_notation_as_numbers():
     from lumibench.errors import UserError
     from method.config import load_method_config, parse_overrides
