@@ -76,8 +76,9 @@ class LumiMotionAdapter(MethodAdapter):
                 s1 = cfg["stage1"]
                 for key in ("densify_until", "normal_from", "distortion_from", "warmup", "densify_from"):
                     out.append(f"stage1.{key}={max(1, round(s1[key] * frac))}")
-                if s1["c2f_until"] > 0:  # the coarse-to-fine schedule shrinks with the run
-                    out.append(f"stage1.c2f_until={max(1, round(s1['c2f_until'] * frac))}")
+                for key in ("c2f_until", "time_window_until"):  # the curricula shrink with the run
+                    if s1[key] > 0:
+                        out.append(f"stage1.{key}={max(1, round(s1[key] * frac))}")
             if cap:
                 out.append(f"stage1.max_gaussians={cap}")
                 out.append(f"stage1.init_points={min(cap, cfg['stage1']['init_points'])}")
