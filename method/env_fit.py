@@ -128,7 +128,8 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
         cw = cosine_weights(n, moments)  # (P, H W)
         pi_, ti = torch.nonzero(cw > 0, as_tuple=True)
         o, dd = pts[pi_], dirs[ti]
-        tracer = SceneTracer(d, build_accel(d, s2["trace_cell"]), s2["trace_offset"] * scene.extent, False)
+        tracer = SceneTracer(d, build_accel(d, s2["trace_cell"]), s2["trace_offset"] * scene.extent, False,
+                             extent=scene.extent)
         T = tracer.visibility(o, dd)
         rays += int(o.shape[0])
         vis = torch.zeros_like(cw)

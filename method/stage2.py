@@ -143,8 +143,8 @@ class SceneTracer:
     """Visibility and indirect light against the Gaussians at one time, with one traversal per batch of
     rays shared by both callables (shade() asks for V, then for the indirect radiance of the same rays)."""
 
-    def __init__(self, d: Deformed, accel: TraceAccel, offset: float, indirect: bool, replay: bool = False,
-                 extent: float = 1.0):
+    def __init__(self, d: Deformed, accel: TraceAccel, offset: float, indirect: bool, replay: bool = False, *,
+                 extent: float):  # the scene's extent: the normal lift scales with it (no default on purpose)
         self.d, self.accel, self.offset, self.use_indirect = d, accel, offset, indirect
         self.extent = float(extent)
         self._key = None
