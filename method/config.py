@@ -132,6 +132,8 @@ def _validate(cfg: dict) -> None:
         raise UserError(f"key 'stage1.lambda_dssim' must be in [0, 1] (got {s['lambda_dssim']})")
     if not 0 < s["time_window_start"] <= 1:
         raise UserError(f"key 'stage1.time_window_start' must be in (0, 1] (got {s['time_window_start']})")
+    if not 0 <= s["time_window_front"] <= 1:
+        raise UserError(f"key 'stage1.time_window_front' must be in [0, 1] (got {s['time_window_front']})")
     if s["time_window_until"] < 0:
         raise UserError(f"key 'stage1.time_window_until' must be >= 0 (got {s['time_window_until']})")
     for key in ("checkpoint_every", "densify_every", "log_every"):

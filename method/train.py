@@ -116,7 +116,8 @@ def c2f_factor(iteration: int, levels: int, until: int) -> int:
     return 2 ** (levels - (max(iteration, 1) - 1) * levels // until)
 
 
-def time_window_views(times: list[float], iteration: int, start: float, until: int) -> list[int]:
+def time_window_views(times: list[float], iteration: int, start: float, until: int,
+                      front: bool = False) -> list[int]:
     """Indices of the training views a time-window curriculum may draw at ``iteration``: those whose time
     lies in the first ``start`` of the time range at iteration 1, the window growing linearly to the whole
     range at ``until``; every view when ``until`` is 0 or passed.
@@ -124,7 +125,10 @@ def time_window_views(times: list[float], iteration: int, start: float, until: i
     Why: with one view per time, a Gaussian on a fast object at one time sits elsewhere at the others, so
     it only survives if the deformation already carries it along. Opening the times in order lets the
     network follow the object from a time it has fitted to the next, a small step, instead of having to
-    find every position at once (spheres' small bouncing ball)."""
+    find every position at once (spheres' small bouncing ball).
+
+    ``front``: only the window's newest ``start`` share of the range (the times just opened), so that a
+    caller can give them more draws than their share of a wide window."""
     if until <= 0 or iteration >= until:
         return list(range(len(times)))
     lo, hi = min(times), max(times)
@@ -132,7 +136,9 @@ def time_window_views(times: list[float], iteration: int, start: float, until: i
     limit = lo + frac * (hi - lo)
     order = sorted(range(len(times)), key=lambda k: times[k])
     chosen = [k for k in order if times[k] <= limit + 1e-9]
-    return chosen or order[:1]
+    if front:
+        chosen = [k for k in chosen if times[k] >= limit - start * (hi - lo) - 1e-9]
+    return chosen or [k for k in order if times[k] <= limit + 1e-9][-1:] or order[:1]
 
 
 def downsampled(view, factor: int):
@@ -355,7 +361,8 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                 for grp in nopt.param_groups:
                     grp["lr"] = mlp_lr(it, total, s)
             if s["time_window_until"] and it < s["time_window_until"]:
-                pool = time_window_views(view_times, it, s["time_window_start"], s["time_window_until"])
+                front = s["time_window_front"] > 0 and float(torch.rand(1, generator=gen)) < s["time_window_front"]
+                pool = time_window_views(view_times, it, s["time_window_start"], s["time_window_until"], front)
                 k_view = pool[int(torch.randint(len(pool), (1,), generator=gen))]
             else:
                 k_view = int(torch.randint(n_views, (1,), generator=gen))

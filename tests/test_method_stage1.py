@@ -474,6 +474,11 @@ def test_time_window_curriculum_opens_the_times_in_order(ci_dataset, tmp_path, m
     assert time_window_views(times, 100, 0.3, 100) == list(range(5))
     assert time_window_views(times, 1, 0.3, 0) == list(range(5))
     assert time_window_views(times, 1, 0.01, 100) == [1]  # never empty: the first time at least
+    # front: only the newest 0.3 of the range inside the window ([0.35, 0.65] at iteration 51)
+    assert time_window_views(times, 51, 0.3, 100, front=True) == [0]
+    assert time_window_views(times, 1, 0.3, 100, front=True) == [1, 3]
+    assert time_window_views(times, 51, 0.1, 100, front=True) == [0]  # [0.436, 0.536]
+    assert time_window_views(times, 41, 0.05, 100, front=True) == [3]  # [0.38, 0.43] is empty: the newest open time
     drawn = []
     real = DynamicScene.deform
 
@@ -490,14 +495,21 @@ def test_time_window_curriculum_opens_the_times_in_order(ci_dataset, tmp_path, m
                      seed=0, progress=False, write_outputs=False)
         return list(drawn)
 
+    from method.data import load_scene
+
+    all_times = [float(v.time) for v in load_scene(ci_dataset, "city", [1.0, 1.0, 1.0], torch.device("cpu")).train]
+    lo, hi = min(all_times), max(all_times)
     got = times_drawn(["stage1.time_window_until=30", "stage1.time_window_start=0.2"])
     assert len(got) == 40
-    lo, hi = min(got), max(got)
     for it, t in enumerate(got[:29], start=1):
         assert t <= lo + (0.2 + 0.8 * (it - 1) / 30) * (hi - lo) + 1e-6, (it, t)
     assert max(got[:10]) < lo + 0.5 * (hi - lo)  # the rule is not vacuous on this data ...
     free = times_drawn([])
     assert max(free[:10]) > lo + 0.5 * (hi - lo)  # ... a run without the window draws late times early
+    front = times_drawn(["stage1.time_window_until=30", "stage1.time_window_start=0.2", "stage1.time_window_front=1"])
+    for it, t in enumerate(front[:29], start=1):
+        limit = 0.2 + 0.8 * (it - 1) / 30
+        assert lo + (limit - 0.2) * (hi - lo) - 1e-6 <= t <= lo + limit * (hi - lo) + 1e-6, (it, t)
 
 
 def test_overrides_read_exponent_notation_as_numbers():
