@@ -125,3 +125,25 @@ def test_chart_failure_marks_skip_methods_not_run():
            {"method": "ours", "status": "failed", "error": "NaN at iteration 3"}]
     charts._draw_failures(Ax(), res, ["irgs", "r3dgs", "ours"], {})
     assert labels == ["ours: 1 failed (no value)"]
+
+
+def test_outputs_rebuilt_without_predictions_keep_drawn_grids(tmp_path, capsys):
+    """Result files alone rebuild everything (runs/ cleaned or from another machine): a grid drawn while
+    the predictions were here is kept and linked, a missing one is skipped with a note, nothing fails."""
+    from benchmark.outputs import build_outputs
+
+    paths = []
+    for i, r in enumerate(_results()):  # every pred_dir is /nowhere
+        p = tmp_path / "runs" / f"{i}" / "results.json"
+        write_result(p, r)
+        paths.append(p)
+    kept = tmp_path / "out" / "grids" / "ours_a_city_to_sunrise_seed0.png"
+    kept.parent.mkdir(parents=True)
+    kept.write_bytes(b"\x89PNG\r\n\x1a\nold")
+    out = build_outputs(paths, tmp_path / "out", grids=True)
+    assert out["grids/ours_a_city_to_sunrise_seed0.png"] == kept and kept.read_bytes().endswith(b"old")
+    assert sorted(k for k in out if k.startswith("grids/")) == ["grids/ours_a_city_to_sunrise_seed0.png"]
+    html = out["report.html"].read_text()
+    assert "grids/ours_a_city_to_sunrise_seed0.png" in html
+    assert "grids/ours_b_city_to_sunrise_seed0.png" not in html
+    assert "no image grid for ours_b_city_to_sunrise_seed0" in capsys.readouterr().err
