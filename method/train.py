@@ -135,10 +135,9 @@ def time_window_views(times: list[float], iteration: int, start: float, until: i
     frac = start + (1.0 - start) * max(iteration - 1, 0) / until
     limit = lo + frac * (hi - lo)
     order = sorted(range(len(times)), key=lambda k: times[k])
-    chosen = [k for k in order if times[k] <= limit + 1e-9]
-    if front:
-        chosen = [k for k in chosen if times[k] >= limit - start * (hi - lo) - 1e-9]
-    return chosen or [k for k in order if times[k] <= limit + 1e-9][-1:] or order[:1]
+    window = [k for k in order if times[k] <= limit + 1e-9]
+    chosen = [k for k in window if times[k] >= limit - start * (hi - lo) - 1e-9] if front else window
+    return chosen or window[-1:] or order[:1]
 
 
 def downsampled(view, factor: int):
