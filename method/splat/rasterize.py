@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .backend import resolve
 from .camera import Camera
 from .composite import composite
 from .segments import Segments
@@ -373,12 +374,14 @@ def _select_pairs(proj, opacities, cam: Camera, near: float, screen_offsets):
 def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
               features: torch.Tensor, camera: Camera, background: torch.Tensor | None = None, *,
               near: float = 0.01, depth_ratio: float = 0.0, distortion_near: float = 0.2,
-              distortion_far: float = 100.0, screen_offsets: torch.Tensor | None = None) -> RasterOutput:
+              distortion_far: float = 100.0, screen_offsets: torch.Tensor | None = None,
+              backend: str | None = None) -> RasterOutput:
     """Render N splats with C-channel ``features`` into ``camera``.
 
     ``screen_offsets`` (N, 2), optional, is added to each splat's footprint position in pixels; pass zeros
     with requires_grad to read the screen-space positional gradient (densification statistic).
     ``depth_ratio`` blends expected (0) and median (1) depth for ``normal_from_depth``.
+    ``backend``: 'auto', 'torch' or 'numba' (method.splat.backend; None: the process default).
     """
     check_splats(means, quats, scales, opacities, features)
     H, W = camera.height, camera.width
@@ -387,11 +390,36 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     with torch.profiler.record_function("splat:project"):
         proj = project_splats(means, quats, scales, opacities, cam)
 
-    # ---- no-grad: bounds, candidates, exact alpha test, sort by pixel, stop at T < 1e-4 ----
+    m_scale = distortion_far / (distortion_far - distortion_near)
+    C = features.shape[1]
+    if resolve(backend, dev) == "numba":
+        acc, dsum, dist, log_t, med, visible, radii, num_pairs = _composite_compiled(
+            proj, opacities, features, cam, near, screen_offsets, m_scale, distortion_near)
+    else:
+        acc, dsum, dist, log_t, med, visible, radii, num_pairs = _composite_torch(
+            proj, opacities, features, cam, near, screen_offsets, m_scale, distortion_near)
+    t_final = torch.exp(log_t)
+    alpha_img = 1.0 - t_final
+    feat = acc[:, :C]
+    if background is not None:
+        feat = feat + t_final[:, None] * background.to(dev, dt)[None, :]
+    depth_exp = dsum / alpha_img.clamp_min(1e-10)
+    out_depth_exp = depth_exp.reshape(H, W)
+    out_med = med.reshape(H, W)
+    surf = out_depth_exp * (1.0 - depth_ratio) + out_med * depth_ratio if depth_ratio else out_depth_exp
+    return RasterOutput(
+        features=feat.reshape(H, W, C), alpha=alpha_img.reshape(H, W), normal=acc[:, C:C + 3].reshape(H, W, 3),
+        depth_expected=out_depth_exp, depth_median=out_med, distortion=dist.reshape(H, W),
+        normal_from_depth=normal_from_depth(surf, cam), visible=visible, radii=radii, num_pairs=num_pairs)
+
+
+def _composite_torch(proj, opacities, features, cam: Camera, near, screen_offsets, m_scale, m_near):
+    """The reference path: per-pixel sums (HW, C + 3), sum w z, distortion, log T, median depth; visible,
+    radii and the pair count. No-grad selection of the pairs, then the survivors with gradients."""
+    H, W = cam.height, cam.width
+    dev, dt = features.device, features.dtype
     with torch.no_grad():
         sid, pix, segs, visible, radii = _select_pairs(proj, opacities, cam, near, screen_offsets)
-
-    # ---- with gradients, survivors only ----
     rows = _pack_rows(proj, opacities)
     if screen_offsets is not None:
         rows = _shift_rows(rows, screen_offsets)
@@ -400,17 +428,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     py = torch.div(pix, W, rounding_mode="floor").to(dt) + (0.5 - cam.cy)
     with torch.profiler.record_function("splat:pair_alpha"):
         alpha, depth = _pair_alpha(g, px, py)
-    C = features.shape[1]
     attrs = _gather_cols(torch.cat([features, proj["normal"]], 1).T, sid).T
-    m_scale = distortion_far / (distortion_far - distortion_near)
     with torch.profiler.record_function("splat:composite"):
-        acc, dsum, dist, log_t, trans = composite(alpha, depth, attrs, segs, m_scale, distortion_near)
-    t_final = torch.exp(log_t)
-    alpha_img = 1.0 - t_final
-    feat = acc[:, :C]
-    if background is not None:
-        feat = feat + t_final[:, None] * background.to(dev, dt)[None, :]
-    depth_exp = dsum / alpha_img.clamp_min(1e-10)
+        acc, dsum, dist, log_t, trans = composite(alpha, depth, attrs, segs, m_scale, m_near)
     with torch.no_grad():
         cand = torch.where(trans > 0.5, torch.arange(sid.numel(), device=dev), torch.full_like(sid, -1))
         last = torch.full((H * W,), -1, dtype=torch.long, device=dev).scatter_reduce(0, pix, cand, "amax")
@@ -420,13 +440,26 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         med = torch.where(has, depth[last.clamp_min(0)], torch.zeros((), dtype=dt, device=dev))
     else:
         med = torch.zeros(H * W, dtype=dt, device=dev) + 0.0 * depth.sum()
-    out_depth_exp = depth_exp.reshape(H, W)
-    out_med = med.reshape(H, W)
-    surf = out_depth_exp * (1.0 - depth_ratio) + out_med * depth_ratio if depth_ratio else out_depth_exp
-    return RasterOutput(
-        features=feat.reshape(H, W, C), alpha=alpha_img.reshape(H, W), normal=acc[:, C:C + 3].reshape(H, W, 3),
-        depth_expected=out_depth_exp, depth_median=out_med, distortion=dist.reshape(H, W),
-        normal_from_depth=normal_from_depth(surf, cam), visible=visible, radii=radii, num_pairs=int(sid.numel()))
+    return acc, dsum, dist, log_t, med, visible, radii, int(sid.numel())
+
+
+def _composite_compiled(proj, opacities, features, cam: Camera, near, screen_offsets, m_scale, m_near):
+    """The same outputs as _composite_torch from the compiled CPU kernels (raster_numba)."""
+    from .raster_numba import composite_rows  # numba is optional: imported only when this backend runs
+
+    with torch.no_grad():
+        detached = {k: v.detach() for k, v in proj.items()}
+        shift = None if screen_offsets is None else screen_offsets.detach()
+        x0, x1, y0, y1, valid, radii, bounded, k2 = _screen_bounds(detached, opacities, cam, near, shift)
+    rows = _pack_rows(proj, opacities)
+    if screen_offsets is not None:
+        rows = _shift_rows(rows, screen_offsets)
+    attrs = torch.cat([features, proj["normal"]], 1)
+    with torch.profiler.record_function("splat:compiled"):
+        (acc, dsum, dist, log_t, med), visible, num_pairs = composite_rows(
+            rows, attrs, x0, x1, y0, y1, valid, bounded, k2, detached["z"], cam.width, cam.height, cam.cx, cam.cy,
+            near, m_scale, m_near, T_STOP)
+    return acc, dsum, dist, log_t, med, visible, radii, num_pairs
 
 
 def normal_from_depth(depth: torch.Tensor, camera: Camera) -> torch.Tensor:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .backend import resolve
 from .rasterize import _gather_cols
 from .segments import Segments
 from .splats import check_splats, splat_frames
@@ -342,7 +343,7 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
           features: torch.Tensor | None, origins: torch.Tensor, dirs: torch.Tensor,
           t_min: torch.Tensor | float = 0.0, *, alpha_min: float = 0.01, T_min: float = 0.03,
           max_alpha: float = 0.99, accel: TraceAccel | None = None, steps_per_round: int | None = None,
-          ray_chunk: int | None = None):
+          ray_chunk: int | None = None, backend: str | None = None):
     """Trace R rays; returns (transmittance (R,), composited features (R, C) or None).
 
     ``dirs`` need not be unit length (t is in units of |d|). Pass ``accel`` (TraceAccel.build) to reuse
@@ -350,6 +351,8 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
     ``alpha_min``. Differentiable w.r.t. opacities, features and the splat geometry (not the rays).
     ``ray_chunk`` rays are traversed at a time (peak memory of the traversal scales with it); it and
     ``steps_per_round`` (DDA cells per ray per round) default per device (RAY_CHUNK, STEPS_PER_ROUND).
+    ``backend``: 'auto', 'torch' or 'numba' (method.splat.backend; None: the process default); the
+    compiled traversal returns the same hits (trace_numba), the compositing below is shared.
     """
     check_splats(means, quats, scales, opacities, features)
     if origins.dim() != 2 or origins.shape[1] != 3 or dirs.shape != origins.shape:
@@ -366,16 +369,25 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
         accel = TraceAccel.build(means, quats, scales, opacities, alpha_min=alpha_min)
     elif accel.num_splats != means.shape[0] or abs(accel.alpha_min - alpha_min) > 0:
         raise ValueError("accel was built for a different splat set or alpha_min; rebuild it")
+    compiled = resolve(backend, dev) == "numba"
+    if compiled:
+        from .trace_numba import march_hits  # numba is optional: imported only when this backend runs
+
+        def march(o, d, tm):
+            return march_hits(accel, o, d, tm, T_min, max_alpha)
+    else:
+        def march(o, d, tm):
+            return _march(accel, o, d, tm, T_min, max_alpha, steps_per_round)
     with torch.no_grad():  # rays in chunks bound the candidate buffers (memory linear in the chunk)
-        parts = [_march(accel, origins[i:i + ray_chunk].detach(), dirs[i:i + ray_chunk].detach(),
-                        tmin[i:i + ray_chunk], T_min, max_alpha, steps_per_round)
+        parts = [march(origins[i:i + ray_chunk].detach(), dirs[i:i + ray_chunk].detach(), tmin[i:i + ray_chunk])
                  for i in range(0, R, ray_chunk)]
         ray = torch.cat([p[0] + i * ray_chunk for i, p in enumerate(parts)]) if parts else tmin.new_zeros(0).long()
         splat = torch.cat([p[1] for p in parts]) if parts else ray
         alpha = torch.cat([p[2] for p in parts]) if parts else tmin[:0]
-    if torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales, opacities)):
-        # differentiable recomputation on the composited hits only (rays are treated as constants); the
+    if compiled or (torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales, opacities))):
+        # differentiable recomputation on the composited hits only (rays are treated as constants); the torch
         # traversal computed the same alphas with the same operations, so without gradients they are reused
+        # (the compiled one works in float64: its alphas are recomputed here too, so both paths agree)
         q = _gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T,
                          splat)
         oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()

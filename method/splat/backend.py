@@ -1,0 +1,58 @@
+"""Which implementation runs the splat kernels: the pure-torch reference or the compiled CPU backend.
+
+``auto`` (the default) takes the compiled kernels (Numba) for CPU tensors when numba is installed, and
+the torch path otherwise (CUDA tensors always use torch). ``torch`` forces the reference, ``numba`` the
+compiled kernels (an error if numba is missing or the tensors are on a GPU). The process-wide default
+comes from the environment variable LUMIBENCH_SPLAT_BACKEND or set_backend(); every rasterize() and
+trace() call can also name one.
+"""
+from __future__ import annotations
+
+import os
+
+import torch
+
+BACKENDS = ("auto", "torch", "numba")
+_default = os.environ.get("LUMIBENCH_SPLAT_BACKEND", "auto")
+_numba_ok: bool | None = None
+
+
+def check_backend(name: str) -> str:
+    if name not in BACKENDS:
+        raise ValueError(f"splat backend must be one of {', '.join(BACKENDS)}, got {name!r}")
+    return name
+
+
+def set_backend(name: str) -> None:
+    """Set the process-wide default backend."""
+    global _default
+    _default = check_backend(name)
+
+
+def get_backend() -> str:
+    return check_backend(_default)
+
+
+def numba_available() -> bool:
+    global _numba_ok
+    if _numba_ok is None:
+        try:
+            import numba  # noqa: F401
+            _numba_ok = True
+        except ImportError:
+            _numba_ok = False
+    return _numba_ok
+
+
+def resolve(name: str | None, device: torch.device) -> str:
+    """The implementation to run, 'torch' or 'numba', for tensors on ``device``."""
+    name = check_backend(get_backend() if name is None else name)
+    if name == "torch":
+        return "torch"
+    if name == "numba":
+        if device.type != "cpu":
+            raise ValueError(f"the numba splat backend runs on the CPU only; the tensors are on {device}")
+        if not numba_available():
+            raise ValueError("the numba splat backend needs numba (pip install numba); or use backend 'torch'")
+        return "numba"
+    return "numba" if device.type == "cpu" and numba_available() else "torch"
