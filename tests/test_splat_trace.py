@@ -14,6 +14,17 @@ from method.splat.trace import TraceAccel, trace
 F64 = torch.float64
 
 
+@pytest.fixture(autouse=True, params=["torch", "numba"])
+def splat_backend(request, monkeypatch):
+    """Every test here runs on the torch reference and on the compiled CPU backend."""
+    import method.splat.backend as backend_mod
+
+    if request.param == "numba" and not backend_mod.numba_available():
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(backend_mod, "_default", request.param)
+    return request.param
+
+
 def random_scene(n=64, seed=0, channels=3, scale=(0.1, 0.4), opacity=(0.05, 0.95)):
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g, dtype=F64) - 0.5) * 1.2

@@ -1,0 +1,203 @@
+"""The compiled CPU backend (Numba) held to the torch reference: values and gradients of every input on
+the random and edge-case scenes, the thresholds it must share, and the backend setting itself."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import method.splat.backend as backend_mod
+from method.splat.camera import Camera
+from method.splat.rasterize import rasterize
+from method.splat.trace import TraceAccel, trace
+
+pytest.importorskip("numba")
+
+from test_splat_raster import KEYS, SCENES, random_scene  # noqa: E402
+from test_splat_trace import random_rays, random_scene as trace_scene  # noqa: E402
+
+F64 = torch.float64
+RASTER_KW = dict(distortion_near=1.0, distortion_far=10.0, depth_ratio=0.3)
+
+
+def _raster_both(params, cam, offsets=True, bg=None, **kw):
+    """Outputs and the gradients of every input (incl. the screen offsets) for both backends."""
+    res = {}
+    for be in ("torch", "numba"):
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        off = torch.zeros(params[0].shape[0], 2, dtype=params[0].dtype, requires_grad=True) if offsets else None
+        out = rasterize(*leaves, cam, bg, screen_offsets=off, backend=be, **kw)
+        g = torch.Generator().manual_seed(7)
+        loss = sum((getattr(out, k) * torch.randn(getattr(out, k).shape, generator=g, dtype=F64).to(
+            getattr(out, k).dtype)).sum() for k in KEYS)
+        grads = torch.autograd.grad(loss, leaves + ([off] if offsets else []), allow_unused=True)
+        res[be] = (out, grads)
+    return res
+
+
+def _close(a, b, tol, msg):
+    scale = max(1.0, float(b.detach().abs().max())) if b.numel() else 1.0
+    torch.testing.assert_close(a, b, atol=tol * scale, rtol=0, msg=msg)
+
+
+@pytest.mark.parametrize("cfg", SCENES, ids=lambda c: "-".join(f"{k}{v}" for k, v in c.items()))
+def test_raster_values_and_gradients_equal_torch(cfg):
+    params, cam = random_scene(**cfg)
+    bg = torch.linspace(0.1, 0.9, params[4].shape[1], dtype=F64)
+    res = _raster_both(params, cam, bg=bg, **RASTER_KW)
+    (a, ga), (b, gb) = res["numba"], res["torch"]
+    assert a.num_pairs == b.num_pairs > 0
+    assert torch.equal(a.visible, b.visible) and torch.equal(a.radii, b.radii)
+    for k in KEYS:
+        _close(getattr(a, k), getattr(b, k), 1e-10, k)
+    names = ("means", "quats", "scales", "opacities", "features", "screen_offsets")
+    fallback_only = cfg.get("scale", (1.0,))[0] < 0.01  # sub-pixel splats: scales cannot matter there
+    for name, x, y in zip(names, ga, gb):
+        assert float(y.abs().max()) > 0 or (fallback_only and name == "scales"), name  # every input reached
+        _close(x, y, 1e-9, name)
+
+
+def test_raster_camera_inside_the_cloud_and_behind_the_near_plane():
+    """Splats behind the camera and crossing its plane (unbounded footprints), and a near plane that cuts
+    hits off (depth < near): the same pairs and gradients."""
+    params, _ = random_scene(n=64, seed=2, scale=(0.2, 0.8), spread=2.0)
+    cam = Camera.look_at((0.05, -0.1, 0.02), (0.3, 1.0, 0.1), 16, 12, dtype=F64)
+    for near in (0.01, 0.4):
+        res = _raster_both(params, cam, near=near)
+        (a, ga), (b, gb) = res["numba"], res["torch"]
+        assert a.num_pairs == b.num_pairs
+        for k in KEYS:
+            _close(getattr(a, k), getattr(b, k), 1e-10, k)
+        for x, y in zip(ga, gb):
+            _close(x, y, 1e-9, "grad")
+
+
+def test_raster_stop_rule_is_shared(monkeypatch):
+    """The compiled kernels read the stop threshold from rasterize.T_STOP: lifting it composites more pairs
+    in both backends alike (near-opaque stacks: the stop really cuts)."""
+    import method.splat.rasterize as rz
+
+    params, cam = random_scene(seed=3, opacity=(0.9, 1.0), n=64)
+    n0 = rasterize(*params, cam, backend="numba").num_pairs
+    assert n0 == rasterize(*params, cam, backend="torch").num_pairs
+    monkeypatch.setattr(rz, "T_STOP", 1e-300)
+    n1 = rasterize(*params, cam, backend="numba").num_pairs
+    assert n1 == rasterize(*params, cam, backend="torch").num_pairs > n0 + 20
+
+
+def test_raster_empty_image():
+    params, cam = random_scene(n=4)
+    params[0] = params[0] + torch.tensor([0.0, -10.0, 0.0], dtype=F64)  # all behind the camera
+    leaves = [p.clone().requires_grad_(True) for p in params]
+    out = rasterize(*leaves, cam, torch.tensor([0.5, 0.5, 0.5], dtype=F64), backend="numba")
+    assert out.num_pairs == 0 and not bool(out.visible.any())
+    torch.testing.assert_close(out.features, torch.full((16, 16, 3), 0.5, dtype=F64))
+    (out.features.sum() + out.alpha.sum()).backward()
+    assert all(float(p.grad.abs().max()) == 0.0 for p in leaves)
+
+
+def test_raster_float32_close_to_torch_float32():
+    params, cam = random_scene(seed=1, n=64)
+    p32 = [p.float() for p in params]
+    res = _raster_both(p32, cam.to(dtype=torch.float32), offsets=False)
+    (a, ga), (b, gb) = res["numba"], res["torch"]
+    for k in ("features", "alpha", "depth_expected", "distortion", "normal"):
+        _close(getattr(a, k), getattr(b, k), 1e-5, k)
+    for x, y in zip(ga, gb):
+        _close(x, y, 2e-4, "grad")
+
+
+def test_raster_without_gradients_equals_with():
+    params, cam = random_scene(seed=0)
+    with torch.no_grad():
+        a = rasterize(*params, cam, backend="numba")
+    b = rasterize(*[p.clone().requires_grad_(True) for p in params], cam, backend="numba")
+    for k in KEYS:
+        torch.testing.assert_close(getattr(a, k), getattr(b, k).detach(), atol=0, rtol=0, msg=k)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_trace_values_and_gradients_equal_torch(seed):
+    params = trace_scene(seed=seed, opacity=(0.05, 1.0) if seed == 2 else (0.05, 0.95))
+    o, d = random_rays(seed=seed, unit=seed != 1, axis_aligned=12)
+    tmin = 0.02 if seed != 2 else torch.rand(o.shape[0], dtype=F64, generator=torch.Generator().manual_seed(3)) * 0.5
+    accel = TraceAccel.build(*params[:4])
+    out = {}
+    for be in ("torch", "numba"):
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        T, F = trace(*leaves, o, d, tmin, accel=accel, backend=be)
+        loss = (T * torch.linspace(0.5, 1.5, T.numel(), dtype=F64)).sum() + (F * F).sum()
+        out[be] = (T, F, torch.autograd.grad(loss, leaves))
+    assert float(out["torch"][0].min()) < 0.1  # occluded rays: the stop rule is exercised
+    for x, y in zip(out["numba"][:2], out["torch"][:2]):
+        torch.testing.assert_close(x, y, atol=1e-12, rtol=0)
+    for x, y in zip(out["numba"][2], out["torch"][2]):
+        _close(x, y, 1e-10, "grad")
+
+
+def test_trace_rays_with_more_hits_than_the_first_pass_holds(monkeypatch):
+    """A ray with more kept hits than the first pass's slots is traced again with room for all of them."""
+    import method.splat.trace_numba as tn
+
+    params = trace_scene(seed=4, n=200, opacity=(0.02, 0.1))  # faint splats: many hits per ray
+    o, d = random_rays(seed=4)
+    T0, F0 = trace(*params, o, d, 0.0, backend="torch")
+    monkeypatch.setattr(tn, "CAP", 2)
+    T1, F1 = trace(*params, o, d, 0.0, backend="numba")
+    torch.testing.assert_close(T1, T0, atol=1e-12, rtol=0)
+    torch.testing.assert_close(F1, F0, atol=1e-12, rtol=0)
+    assert float(T0.min()) < 0.9  # rays do cross several faint splats
+
+
+def test_trace_thresholds_and_chunks_are_shared():
+    params = trace_scene(seed=3, opacity=(0.5, 1.0))
+    o, d = random_rays(seed=3)
+    for kw in (dict(alpha_min=0.2, T_min=0.3), dict(alpha_min=0.001, T_min=0.001, max_alpha=0.9),
+               dict(ray_chunk=37)):
+        Ta, Fa = trace(*params, o, d, 0.0, backend="numba", **kw)
+        Tb, Fb = trace(*params, o, d, 0.0, backend="torch", **kw)
+        torch.testing.assert_close(Ta, Tb, atol=1e-12, rtol=0)
+        torch.testing.assert_close(Fa, Fb, atol=1e-12, rtol=0)
+
+
+def test_backend_setting(monkeypatch):
+    cpu = torch.device("cpu")
+    assert backend_mod.resolve("auto", cpu) == "numba"
+    assert backend_mod.resolve("torch", cpu) == "torch"
+    assert backend_mod.resolve("auto", torch.device("cuda")) == "torch"
+    with pytest.raises(ValueError, match="CPU only"):
+        backend_mod.resolve("numba", torch.device("cuda"))
+    with pytest.raises(ValueError, match="one of auto, torch, numba"):
+        backend_mod.resolve("fast", cpu)
+    monkeypatch.setattr(backend_mod, "_numba_ok", False)  # as on a machine without numba
+    assert backend_mod.resolve("auto", cpu) == "torch"
+    with pytest.raises(ValueError, match="needs numba"):
+        backend_mod.resolve("numba", cpu)
+    monkeypatch.setattr(backend_mod, "_default", "torch")
+    assert backend_mod.resolve(None, cpu) == "torch"
+    with pytest.raises(ValueError, match="splat backend"):
+        backend_mod.set_backend("gpu")
+
+
+def test_setting_reaches_rasterize_and_trace(monkeypatch):
+    """rasterize() and trace() take the process default: a broken compiled path must show."""
+    import method.splat.raster_numba as rn
+    import method.splat.trace_numba as tn
+
+    params, cam = random_scene(seed=0, n=8)
+
+    def boom(*a, **k):
+        raise RuntimeError("compiled path taken")
+
+    monkeypatch.setattr(rn, "composite_rows", boom)
+    monkeypatch.setattr(tn, "march_hits", boom)
+    monkeypatch.setattr(backend_mod, "_default", "numba")
+    with pytest.raises(RuntimeError, match="compiled"):
+        rasterize(*params, cam)
+    o, d = random_rays(r=4)
+    with pytest.raises(RuntimeError, match="compiled"):
+        trace(*trace_scene(seed=0, n=8), o, d)
+    monkeypatch.setattr(backend_mod, "_default", "torch")
+    assert rasterize(*params, cam).num_pairs > 0
+    assert math.isfinite(float(trace(*trace_scene(seed=0, n=8), o, d)[0].sum()))
