@@ -35,6 +35,7 @@ from method.model.deform import DeformNet
 from method.model.density import DensityStats, densify_and_prune, reset_opacity
 from method.model.gaussians import GaussianAdam, Gaussians
 from method.splat.camera import Camera
+from method.splat.backend import resolve as resolve_backend
 from method.stage1 import DynamicScene, assign_p_from_motion, render, stage1_loss
 
 
@@ -452,6 +453,7 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                    "breakdown_s": {k: round(v, 4) for k, v in timer.sums.items()},
                    "breakdown_iterations": iters_run},
         "device": device_name(dev), "device_type": dev.type, "threads": torch.get_num_threads(),
+        "splat_backend": resolve_backend(None, dev),
         "peak_memory_bytes": peak_memory_bytes(dev),
     }
     _merge_json(run_dir / "timings.json", timings)

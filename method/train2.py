@@ -12,6 +12,7 @@ import torch
 from lumibench.errors import UserError
 from lumibench.io import atomic_path, atomic_write_json
 from method.data import SceneData, load_scene
+from method.splat.backend import resolve as resolve_backend
 from method.stage2 import (Materials, display, freeze_geometry, make_optimiser, render_pbr_view,
                            set_material_lrs, stage2_step_loss)
 from method.train import (Timer, _finite_or_raise, _merge_json, checkpoint_paths, device_name, load_checkpoint,
@@ -157,7 +158,8 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
                    **({"env_fit_seconds": env_fit_record["seconds"]} if env_fit_record is not None else {}),
                    "rays_traced": rays_total, "breakdown_s": {k: round(v, 4) for k, v in timer.sums.items()},
                    "breakdown_iterations": total - start_it, "cached_tracer_grids": len(accel_cache)},
-        "device": device_name(dev), "peak_memory_bytes": peak_memory_bytes(dev), "threads": torch.get_num_threads()})
+        "device": device_name(dev), "peak_memory_bytes": peak_memory_bytes(dev), "threads": torch.get_num_threads(),
+        "splat_backend": resolve_backend(None, dev)})
     metrics = stage2_metrics(scene, mats, data, cfg, gen)
     metrics["seconds"] = seconds
     atomic_write_json(run_dir / "metrics_stage2.json", metrics)

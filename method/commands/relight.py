@@ -19,12 +19,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dirs", type=int, default=None, help="directions per pixel (default the profile's dirs_eval)")
     p.add_argument("--out", default=None, help="output folder (default RUN/relight/<envmap name>)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--splat-backend", default=None, choices=["auto", "torch", "numba"],
+                   help="rasterizer/tracer implementation (default auto: compiled CPU kernels when available)")
     p.add_argument("--seed", type=int, default=0)
 
 
 def run(args: argparse.Namespace) -> int:
+    from method.commands.train import set_splat_backend
     from method.relight import relight
 
+    set_splat_backend(args.splat_backend)
     out = relight(args.run, args.envmap, views=args.views, time=args.time, frames=args.frames, dirs=args.dirs,
                   out=args.out, device=args.device, seed=args.seed)
     print(f"relit: {out}")

@@ -17,6 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="1, 2 (from the run's stage-1 checkpoint), or all: both, then the benchmark predictions (default)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--splat-backend", default=None, choices=["auto", "torch", "numba"],
+                   help="rasterizer/tracer implementation: auto (default; compiled CPU kernels when numba is "
+                        "installed and the device is the CPU), torch (the reference), numba")
     p.add_argument("--data", default="data", help="dataset root (default data)")
     p.add_argument("--runs", default="runs", help="runs root (default runs)")
     p.add_argument("--run-dir", default=None, help="explicit run directory (overrides --runs/--name)")
@@ -43,6 +46,14 @@ def resolve_scene(data: str, profile: str, scene: str) -> Path:
     return d
 
 
+def set_splat_backend(name: str | None) -> None:
+    """--splat-backend: the process-wide rasterizer/tracer implementation (None: LUMIBENCH_SPLAT_BACKEND or auto)."""
+    from method.splat.backend import set_backend
+
+    if name is not None:
+        set_backend(name)
+
+
 def run(args: argparse.Namespace) -> int:
     from lumibench.errors import UserError
     from method.config import load_method_config
@@ -50,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.device not in ("cpu", "cuda") and not str(args.device).startswith("cuda:"):
         raise UserError(f"--device must be cpu or cuda, got {args.device!r}")
+    set_splat_backend(args.splat_backend)
     cfg = load_method_config(args.profile, args.overrides)
     scene_dir = resolve_scene(args.data, args.profile, args.scene)
     name = args.name or ("static" if args.static else "lumimotion")

@@ -20,11 +20,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numba
+import torch
 from numba import get_num_threads, njit, prange
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 TINY = 1e-30
+SPLAT_BLOCK = 512  # splats per parallel task in the per-splat kernels (one set of scratch arrays each)
 MARGIN = 0.01  # pixels: the span is widened by this much on each side, then every pixel is tested exactly
 
 
@@ -252,16 +255,234 @@ def backward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, 
     return out_r, out_a
 
 
+@njit(cache=True, parallel=True, error_model="numpy")
+def project(means, quats, scales, opac, shift, rot, trans, cam_c, f, cx, cy, width, height, near, alpha_min):
+    """Per splat (as rasterize.project_splats, _pack_rows, _shift_rows and _screen_bounds): the shifted rows
+    (N, 14), the camera-facing unit normal (N, 3), the facing sign, and the pixel bounds of the support:
+    x0, x1, y0, y1, valid, radii, bounded, k2."""
+    n = means.shape[0]
+    rows = np.empty((n, 14))
+    nrm = np.empty((n, 3))
+    sign = np.empty(n)
+    x0 = np.zeros(n, np.int64)
+    x1 = np.zeros(n, np.int64)
+    y0 = np.zeros(n, np.int64)
+    y1 = np.zeros(n, np.int64)
+    valid = np.zeros(n, np.bool_)
+    radii = np.zeros(n)
+    bounded = np.zeros(n, np.bool_)
+    k2 = np.zeros(n)
+    big = float(max(width, height)) * 4.0 + 10.0
+    for c in prange((n + SPLAT_BLOCK - 1) // SPLAT_BLOCK):
+      m = np.empty((3, 3))  # rows m0, m1, m2 of M = K [a b p]
+      for i in range(c * SPLAT_BLOCK, min(n, (c + 1) * SPLAT_BLOCK)):
+        qn = math.sqrt(quats[i, 0] ** 2 + quats[i, 1] ** 2 + quats[i, 2] ** 2 + quats[i, 3] ** 2)
+        qn = max(qn, 1e-12)
+        w, x, y, z = quats[i, 0] / qn, quats[i, 1] / qn, quats[i, 2] / qn, quats[i, 3] / qn
+        # columns of the rotation: t_u, t_v (scaled below) and the normal
+        r00, r10, r20 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+        r01, r11, r21 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+        r02, r12, r22 = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+        su, sv = scales[i, 0], scales[i, 1]
+        for k in range(3):
+            a_k = rot[k, 0] * r00 * su + rot[k, 1] * r10 * su + rot[k, 2] * r20 * su
+            b_k = rot[k, 0] * r01 * sv + rot[k, 1] * r11 * sv + rot[k, 2] * r21 * sv
+            p_k = rot[k, 0] * means[i, 0] + rot[k, 1] * means[i, 1] + rot[k, 2] * means[i, 2] + trans[k]
+            scale = f if k < 2 else 1.0
+            m[k, 0], m[k, 1], m[k, 2] = scale * a_k, scale * b_k, scale * p_k
+        A0 = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+        A1 = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+        A2 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+        B0 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+        B1 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+        B2 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+        C0 = m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1]
+        C1 = m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2]
+        C2 = m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0]
+        zc = m[2, 2]
+        zs = zc if abs(zc) > 1e-12 else 1e-12
+        ctr_x = m[0, 2] / zs  # m0 already carries f
+        ctr_y = m[1, 2] / zs
+        sx, sy = shift[i, 0], shift[i, 1]
+        rows[i, 0] = A0 - sx * B0 - sy * C0
+        rows[i, 1] = A1 - sx * B1 - sy * C1
+        rows[i, 2] = A2 - sx * B2 - sy * C2
+        rows[i, 3], rows[i, 4], rows[i, 5] = B0, B1, B2
+        rows[i, 6], rows[i, 7], rows[i, 8] = C0, C1, C2
+        rows[i, 9] = m[2, 0] * A0 + m[2, 1] * A1 + m[2, 2] * A2
+        rows[i, 10] = ctr_x + sx
+        rows[i, 11] = ctr_y + sy
+        rows[i, 12] = zc
+        rows[i, 13] = opac[i]
+        view = (cam_c[0] - means[i, 0]) * r02 + (cam_c[1] - means[i, 1]) * r12 + (cam_c[2] - means[i, 2]) * r22
+        sg = -1.0 if view < 0 else 1.0
+        sign[i] = sg
+        nrm[i, 0], nrm[i, 1], nrm[i, 2] = sg * r02, sg * r12, sg * r22
+        # bounds of the support ellipse (dual conic) union the low-pass disc, as _screen_bounds
+        o = opac[i]
+        log_t = math.log(max(o / alpha_min, 1.0))
+        kk = 2.0 * log_t
+        k2[i] = kk
+        c00 = kk * (m[0, 0] * m[0, 0] + m[0, 1] * m[0, 1]) - m[0, 2] * m[0, 2]
+        c11 = kk * (m[1, 0] * m[1, 0] + m[1, 1] * m[1, 1]) - m[1, 2] * m[1, 2]
+        c22 = kk * (m[2, 0] * m[2, 0] + m[2, 1] * m[2, 1]) - m[2, 2] * m[2, 2]
+        c02 = kk * (m[0, 0] * m[2, 0] + m[0, 1] * m[2, 1]) - m[0, 2] * m[2, 2]
+        c12 = kk * (m[1, 0] * m[2, 0] + m[1, 1] * m[2, 1]) - m[1, 2] * m[2, 2]
+        bnd = c22 < -1e-12 * max(m[2, 2] * m[2, 2], 1e-30)
+        bounded[i] = bnd
+        c22s = c22 if bnd else -1.0
+        ex = math.sqrt(max(c02 * c02 - c00 * c22s, 0.0)) / (-c22s)
+        ey = math.sqrt(max(c12 * c12 - c11 * c22s, 0.0)) / (-c22s)
+        mx, my = c02 / c22s, c12 / c22s
+        rd = math.sqrt(log_t)
+        if bnd:
+            xmin = min(mx - ex, ctr_x - rd) + cx + sx
+            xmax = max(mx + ex, ctr_x + rd) + cx + sx
+            ymin = min(my - ey, ctr_y - rd) + cy + sy
+            ymax = max(my + ey, ctr_y + rd) + cy + sy
+            xmin, xmax = min(max(xmin, -big), big), min(max(xmax, -big), big)
+            ymin, ymax = min(max(ymin, -big), big), min(max(ymax, -big), big)
+        else:
+            xmin, xmax, ymin, ymax = -big, big, -big, big
+        pad = 1e-3
+        x0[i] = max(int(math.ceil(xmin - 0.5 - pad)), 0)
+        x1[i] = min(int(math.floor(xmax - 0.5 + pad)), width - 1)
+        y0[i] = max(int(math.ceil(ymin - 0.5 - pad)), 0)
+        y1[i] = min(int(math.floor(ymax - 0.5 + pad)), height - 1)
+        ok = zc >= near and o >= alpha_min and x1[i] >= x0[i] and y1[i] >= y0[i]
+        valid[i] = ok
+        radii[i] = max(xmax - xmin, ymax - ymin) * 0.5 if ok else 0.0
+    return rows, nrm, sign, x0, x1, y0, y1, valid, radii, bounded, k2
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def project_backward(means, quats, scales, shift, rot, trans, f, sign, g_rows, g_nrm):
+    """Gradients of project()'s rows and normals w.r.t. means, quats, scales, opacities and shift."""
+    n = means.shape[0]
+    g_means = np.zeros((n, 3))
+    g_quats = np.zeros((n, 4))
+    g_scales = np.zeros((n, 2))
+    g_opac = np.zeros(n)
+    g_shift = np.zeros((n, 2))
+    for ch in prange((n + SPLAT_BLOCK - 1) // SPLAT_BLOCK):
+      R = np.empty((3, 3))
+      m = np.empty((3, 3))
+      gm = np.empty((3, 3))
+      gR = np.empty((3, 3))
+      A = np.empty(3)
+      B = np.empty(3)
+      C = np.empty(3)
+      gA = np.empty(3)
+      gB = np.empty(3)
+      gC = np.empty(3)
+      gtu = np.empty(3)
+      gtv = np.empty(3)
+      for i in range(ch * SPLAT_BLOCK, min(n, (ch + 1) * SPLAT_BLOCK)):
+        qn = max(math.sqrt(quats[i, 0] ** 2 + quats[i, 1] ** 2 + quats[i, 2] ** 2 + quats[i, 3] ** 2), 1e-12)
+        w, x, y, z = quats[i, 0] / qn, quats[i, 1] / qn, quats[i, 2] / qn, quats[i, 3] / qn
+        R[0, 0], R[1, 0], R[2, 0] = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+        R[0, 1], R[1, 1], R[2, 1] = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+        R[0, 2], R[1, 2], R[2, 2] = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+        su, sv = scales[i, 0], scales[i, 1]
+        for k in range(3):
+            a_k = (rot[k, 0] * R[0, 0] + rot[k, 1] * R[1, 0] + rot[k, 2] * R[2, 0]) * su
+            b_k = (rot[k, 0] * R[0, 1] + rot[k, 1] * R[1, 1] + rot[k, 2] * R[2, 1]) * sv
+            p_k = rot[k, 0] * means[i, 0] + rot[k, 1] * means[i, 1] + rot[k, 2] * means[i, 2] + trans[k]
+            scale = f if k < 2 else 1.0
+            m[k, 0], m[k, 1], m[k, 2] = scale * a_k, scale * b_k, scale * p_k
+        g = g_rows[i]
+        sx, sy = shift[i, 0], shift[i, 1]
+        for k in range(3):  # rows 0:3 hold A - sx B - sy C
+            gA[k] = g[k]
+            gB[k] = g[3 + k] - sx * g[k]
+            gC[k] = g[6 + k] - sy * g[k]
+            gm[k, 0] = 0.0
+            gm[k, 1] = 0.0
+            gm[k, 2] = 0.0
+        g_opac[i] = g[13]
+        A[0] = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+        A[1] = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+        A[2] = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+        B[0] = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+        B[1] = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+        B[2] = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+        C[0] = m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1]
+        C[1] = m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2]
+        C[2] = m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0]
+        g_shift[i, 0] = g[10] - (g[0] * B[0] + g[1] * B[1] + g[2] * B[2])
+        g_shift[i, 1] = g[11] - (g[0] * C[0] + g[1] * C[1] + g[2] * C[2])
+        for k in range(3):  # det = m2 . A
+            gm[2, k] += g[9] * A[k]
+            gA[k] += g[9] * m[2, k]
+        _cross_back(m, 0, 1, gA, gm)  # A = m0 x m1
+        _cross_back(m, 1, 2, gB, gm)  # B = m1 x m2
+        _cross_back(m, 2, 0, gC, gm)  # C = m2 x m0
+        zc = m[2, 2]
+        if abs(zc) > 1e-12:
+            gm[0, 2] += g[10] / zc
+            gm[1, 2] += g[11] / zc
+            gm[2, 2] -= (g[10] * m[0, 2] + g[11] * m[1, 2]) / (zc * zc)
+        gm[2, 2] += g[12]
+        # m0 = f (a0, b0, p0), m1 = f (a1, b1, p1), m2 = (a2, b2, p2); a = rot t_u, b = rot t_v, p = rot mean + t
+        for j in range(3):
+            gtu[j] = 0.0
+            gtv[j] = 0.0
+        for k in range(3):
+            scale = f if k < 2 else 1.0
+            for j in range(3):
+                gtu[j] += rot[k, j] * gm[k, 0] * scale
+                gtv[j] += rot[k, j] * gm[k, 1] * scale
+                g_means[i, j] += rot[k, j] * gm[k, 2] * scale
+        for j in range(3):
+            gR[j, 0] = gtu[j] * su
+            gR[j, 1] = gtv[j] * sv
+            gR[j, 2] = sign[i] * g_nrm[i, j]
+        g_scales[i, 0] = R[0, 0] * gtu[0] + R[1, 0] * gtu[1] + R[2, 0] * gtu[2]
+        g_scales[i, 1] = R[0, 1] * gtv[0] + R[1, 1] * gtv[1] + R[2, 1] * gtv[2]
+        gw = 2 * (-z * gR[0, 1] + y * gR[0, 2] + z * gR[1, 0] - x * gR[1, 2] - y * gR[2, 0] + x * gR[2, 1])
+        gx = 2 * (y * gR[0, 1] + z * gR[0, 2] + y * gR[1, 0] - 2 * x * gR[1, 1] - w * gR[1, 2] + z * gR[2, 0]
+                  + w * gR[2, 1] - 2 * x * gR[2, 2])
+        gy = 2 * (-2 * y * gR[0, 0] + x * gR[0, 1] + w * gR[0, 2] + x * gR[1, 0] + z * gR[1, 2] - w * gR[2, 0]
+                  + z * gR[2, 1] - 2 * y * gR[2, 2])
+        gz = 2 * (-2 * z * gR[0, 0] - w * gR[0, 1] + x * gR[0, 2] + w * gR[1, 0] - 2 * z * gR[1, 1] + y * gR[1, 2]
+                  + x * gR[2, 0] + y * gR[2, 1])
+        dot = w * gw + x * gx + y * gy + z * gz  # through the normalisation q = q_raw / |q_raw|
+        g_quats[i, 0] = (gw - w * dot) / qn
+        g_quats[i, 1] = (gx - x * dot) / qn
+        g_quats[i, 2] = (gy - y * dot) / qn
+        g_quats[i, 3] = (gz - z * dot) / qn
+    return g_means, g_quats, g_scales, g_opac, g_shift
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _cross_back(m, i, j, g, gm):
+    """Accumulate the gradients of c = m_i x m_j (upstream g) into gm's rows i and j."""
+    # dc/dm_i: g_mi = m_j x g ; dc/dm_j: g_mj = g x m_i
+    gm[i, 0] += m[j, 1] * g[2] - m[j, 2] * g[1]
+    gm[i, 1] += m[j, 2] * g[0] - m[j, 0] * g[2]
+    gm[i, 2] += m[j, 0] * g[1] - m[j, 1] * g[0]
+    gm[j, 0] += g[1] * m[i, 2] - g[2] * m[i, 1]
+    gm[j, 1] += g[2] * m[i, 0] - g[0] * m[i, 2]
+    gm[j, 2] += g[0] * m[i, 1] - g[1] * m[i, 0]
+
+
 # ---- torch glue ----------------------------------------------------------------------------------------
 
-import torch  # noqa: E402
+
+def match_torch_threads() -> None:
+    """Run the kernels on as many threads as torch uses (torch.set_num_threads, JOBS=N workers)."""
+    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    if numba.get_num_threads() != n:
+        numba.set_num_threads(n)
 
 
-def _np64(t: torch.Tensor) -> np.ndarray:
+def as_f64(t: torch.Tensor) -> np.ndarray:
+    """A contiguous float64 numpy copy (or view) of a tensor, for the kernels."""
     return np.ascontiguousarray(t.detach().to("cpu", torch.float64).numpy())
 
 
-def _npi(t: torch.Tensor) -> np.ndarray:
+def as_i64(t: torch.Tensor) -> np.ndarray:
+    """A contiguous int64 numpy copy (or view) of a tensor, for the kernels."""
     return np.ascontiguousarray(t.detach().to("cpu", torch.int64).numpy())
 
 
@@ -271,7 +492,7 @@ class _RasterRows(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rows, attrs, geom, width, height, cx, cy, near, m_scale, m_near, t_stop):
         x0, x1, starts, ids, kk, bounded = geom
-        r, a = _np64(rows), _np64(attrs)
+        r, a = as_f64(rows), as_f64(attrs)
         feat, dsum, dist, log_t, mom, med, med_id, visible, pairs = forward(
             r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop)
         ctx.state = (r, a, geom, width, height, cx, cy, near, m_scale, m_near, t_stop, feat, dsum, mom, med_id)
@@ -288,12 +509,62 @@ class _RasterRows(torch.autograd.Function):
         npix = width * height
 
         def grad(g, shape):
-            return np.zeros(shape) if g is None else _np64(g).reshape(shape)
+            return np.zeros(shape) if g is None else as_f64(g).reshape(shape)
 
         gr, ga = backward(r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near,
                           t_stop, feat, dsum, mom, med_id, grad(g_feat, (npix, a.shape[1])), grad(g_dsum, npix),
                           grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix), get_num_threads())
         return (torch.from_numpy(gr).to(ctx.dtype), torch.from_numpy(ga).to(ctx.dtype)) + (None,) * 9
+
+
+class _ProjectRows(torch.autograd.Function):
+    """means, quats, scales, opacities, screen shift -> rows (N, 14) and facing normals (N, 3), plus the
+    no-grad pixel bounds of each splat's support (project())."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, shift, cam, near, alpha_min):
+        rot = as_f64(cam.w2c[:3, :3])
+        trans = as_f64(cam.w2c[:3, 3])
+        mq, qq, sq, sh = as_f64(means), as_f64(quats), as_f64(scales), as_f64(shift)
+        rows, nrm, sign, x0, x1, y0, y1, valid, radii, bounded, k2 = project(
+            mq, qq, sq, as_f64(opacities), sh, rot, trans, as_f64(cam.center), float(cam.focal), float(cam.cx),
+            float(cam.cy), cam.width, cam.height, float(near), float(alpha_min))
+        ctx.state = (mq, qq, sq, sh, rot, trans, float(cam.focal), sign)
+        ctx.dtype = means.dtype
+        dt = means.dtype
+        bounds = (x0, x1, y0, y1, valid, radii, bounded, k2)
+        return torch.from_numpy(rows).to(dt), torch.from_numpy(nrm).to(dt), bounds
+
+    @staticmethod
+    def backward(ctx, g_rows, g_nrm, _g_bounds):
+        mq, qq, sq, sh, rot, trans, f, sign = ctx.state
+        n = mq.shape[0]
+        gr = np.zeros((n, 14)) if g_rows is None else as_f64(g_rows)
+        gn = np.zeros((n, 3)) if g_nrm is None else as_f64(g_nrm)
+        grads = project_backward(mq, qq, sq, sh, rot, trans, f, sign, gr, gn)
+        return tuple(torch.from_numpy(g).to(ctx.dtype) for g in grads) + (None, None, None)
+
+
+def rasterize_compiled(means, quats, scales, opacities, features, cam, near: float, screen_offsets, m_scale: float,
+                       m_near: float, alpha_min: float, t_stop: float):
+    """The whole compiled path from the splat parameters: per pixel (sum w [features, normal] (HW, C + 3),
+    sum w z, distortion, log T final, median depth), per splat visibility and radii, the pair count."""
+    match_torch_threads()
+    shift = screen_offsets if screen_offsets is not None else means.new_zeros((means.shape[0], 2))
+    args = (means, quats, scales, opacities, shift, cam, near, alpha_min)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in args[:5]):
+        rows, nrm, bounds = _ProjectRows.apply(*args)
+    else:
+        rows, nrm, bounds = _ProjectRows.forward(_Ctx(), *args)
+    x0, x1, y0, y1, valid, radii, bounded, k2 = bounds
+    attrs = torch.cat([features, nrm], 1)
+    with torch.no_grad():
+        zs = rows[:, 12].detach()
+    (acc, dsum, dist, log_t, med), visible, num_pairs = composite_rows(
+        rows, attrs, torch.from_numpy(x0), torch.from_numpy(x1), torch.from_numpy(y0), torch.from_numpy(y1),
+        torch.from_numpy(valid), torch.from_numpy(bounded), torch.from_numpy(k2), zs, cam.width, cam.height,
+        cam.cx, cam.cy, near, m_scale, m_near, t_stop)
+    return acc, dsum, dist, log_t, med, visible, torch.from_numpy(radii).to(means.dtype), num_pairs
 
 
 def composite_rows(rows, attrs, x0, x1, y0, y1, valid, bounded, k2, z, width: int, height: int, cx: float,
@@ -303,8 +574,8 @@ def composite_rows(rows, attrs, x0, x1, y0, y1, valid, bounded, k2, z, width: in
     with torch.no_grad():
         order = torch.argsort(z.detach(), stable=True)
         order = order.index_select(0, torch.nonzero(valid.index_select(0, order)).squeeze(1))
-        starts, ids = row_lists(_npi(order), _npi(y0), _npi(y1), height)
-    geom = (_npi(x0), _npi(x1), starts, ids, _np64(k2), np.ascontiguousarray(bounded.detach().cpu().numpy()))
+        starts, ids = row_lists(as_i64(order), as_i64(y0), as_i64(y1), height)
+    geom = (as_i64(x0), as_i64(x1), starts, ids, as_f64(k2), np.ascontiguousarray(bounded.detach().cpu().numpy()))
     args = (geom, width, height, float(cx), float(cy), float(near), float(m_scale), float(m_near), float(t_stop))
     if torch.is_grad_enabled() and (rows.requires_grad or attrs.requires_grad):
         *outs, vis, n_pairs = _RasterRows.apply(rows, attrs, *args)
@@ -317,4 +588,7 @@ class _Ctx:
     """Stand-in for autograd's ctx when no gradient is needed."""
 
     def mark_non_differentiable(self, *args):
+        pass
+
+    def save_for_backward(self, *args):
         pass

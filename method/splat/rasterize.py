@@ -387,15 +387,18 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     H, W = camera.height, camera.width
     dev, dt = means.device, means.dtype
     cam = camera if (camera.device == dev and camera.dtype == dt) else camera.to(dev, dt)
-    with torch.profiler.record_function("splat:project"):
-        proj = project_splats(means, quats, scales, opacities, cam)
-
     m_scale = distortion_far / (distortion_far - distortion_near)
     C = features.shape[1]
     if resolve(backend, dev) == "numba":
-        acc, dsum, dist, log_t, med, visible, radii, num_pairs = _composite_compiled(
-            proj, opacities, features, cam, near, screen_offsets, m_scale, distortion_near)
+        from .raster_numba import rasterize_compiled  # numba is optional: imported only when this backend runs
+
+        with torch.profiler.record_function("splat:compiled"):
+            acc, dsum, dist, log_t, med, visible, radii, num_pairs = rasterize_compiled(
+                means, quats, scales, opacities, features, cam, near, screen_offsets, m_scale, distortion_near,
+                ALPHA_MIN, T_STOP)
     else:
+        with torch.profiler.record_function("splat:project"):
+            proj = project_splats(means, quats, scales, opacities, cam)
         acc, dsum, dist, log_t, med, visible, radii, num_pairs = _composite_torch(
             proj, opacities, features, cam, near, screen_offsets, m_scale, distortion_near)
     t_final = torch.exp(log_t)
@@ -441,25 +444,6 @@ def _composite_torch(proj, opacities, features, cam: Camera, near, screen_offset
     else:
         med = torch.zeros(H * W, dtype=dt, device=dev) + 0.0 * depth.sum()
     return acc, dsum, dist, log_t, med, visible, radii, int(sid.numel())
-
-
-def _composite_compiled(proj, opacities, features, cam: Camera, near, screen_offsets, m_scale, m_near):
-    """The same outputs as _composite_torch from the compiled CPU kernels (raster_numba)."""
-    from .raster_numba import composite_rows  # numba is optional: imported only when this backend runs
-
-    with torch.no_grad():
-        detached = {k: v.detach() for k, v in proj.items()}
-        shift = None if screen_offsets is None else screen_offsets.detach()
-        x0, x1, y0, y1, valid, radii, bounded, k2 = _screen_bounds(detached, opacities, cam, near, shift)
-    rows = _pack_rows(proj, opacities)
-    if screen_offsets is not None:
-        rows = _shift_rows(rows, screen_offsets)
-    attrs = torch.cat([features, proj["normal"]], 1)
-    with torch.profiler.record_function("splat:compiled"):
-        (acc, dsum, dist, log_t, med), visible, num_pairs = composite_rows(
-            rows, attrs, x0, x1, y0, y1, valid, bounded, k2, detached["z"], cam.width, cam.height, cam.cx, cam.cy,
-            near, m_scale, m_near, T_STOP)
-    return acc, dsum, dist, log_t, med, visible, radii, num_pairs
 
 
 def normal_from_depth(depth: torch.Tensor, camera: Camera) -> torch.Tensor:

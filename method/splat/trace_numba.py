@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from .raster_numba import as_f64, match_torch_threads
+
 RAY_BLOCK = 256  # rays per parallel task (one set of scratch buffers each)
 CAP = 32  # hit slots per ray in the first pass
 
@@ -130,19 +132,18 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
     return out_s, out_a, count
 
 
-def _np64(t: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to("cpu", torch.float64).numpy())
 
 
 def march_hits(accel, origins, dirs, tmin, T_min: float, max_alpha: float):
     """(ray, splat, alpha) of the composited hits, rays in order and each ray's hits front to back."""
+    match_torch_threads()
     dt = origins.dtype
-    o, d, tm = _np64(origins), _np64(dirs), _np64(tmin)
+    o, d, tm = as_f64(origins), as_f64(dirs), as_f64(tmin)
     counts = (accel.cell_start[1:] - accel.cell_start[:-1])
     max_cell = max(1, int(counts.max())) if counts.numel() else 1
-    grid = (_np64(accel.lo), _np64(accel.cell), np.asarray(accel.res, np.int64),
-            np.ascontiguousarray(accel.blk_start.numpy()), _np64(accel.blk_plane),
-            np.ascontiguousarray(accel.slot_splat.numpy()), _np64(accel.splat_rows))
+    grid = (as_f64(accel.lo), as_f64(accel.cell), np.asarray(accel.res, np.int64),
+            np.ascontiguousarray(accel.blk_start.numpy()), as_f64(accel.blk_plane),
+            np.ascontiguousarray(accel.slot_splat.numpy()), as_f64(accel.splat_rows))
     args = (float(accel.alpha_min), float(T_min), float(max_alpha))
     out_s, out_a, count = march(o, d, tm, *grid, *args, CAP, max_cell)
     over = np.nonzero(count > CAP)[0]
