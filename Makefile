@@ -62,6 +62,7 @@ test: setup
 BENCH_DEVICE ?= cpu
 bench: setup
 	$(PY) -m method.splat.bench --device $(BENCH_DEVICE) --out $(if $(filter cpu,$(BENCH_DEVICE)),bench/latest.json,bench/latest_$(BENCH_DEVICE).json)
+	$(if $(filter cpu,$(BENCH_DEVICE)),$(PY) -m method.splat.bench --backends --out bench/backends.json,)
 	$(PY) -m generator bench --out bench/generator.json
 
 clean-venv:

@@ -121,9 +121,14 @@ def raster_loss(out):
         + (out.normal_from_depth * out.normal).sum()
 
 
-def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_size: int | None = None):
+def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_size: int | None = None,
+                backend: str | None = None):
     """Median seconds of rasterize + backward of a loss using every output; also the pair count."""
+    from functools import partial
+
     from .rasterize import rasterize
+
+    rasterize = partial(rasterize, backend=backend)
 
     means, quats, scales, opac, feats, cam = make_scene(n, size, device=device, ref_size=ref_size)
     params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, feats)]
@@ -145,9 +150,13 @@ def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_si
 
 
 def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup: int = 1,
-               cell_factor: float | None = None, surfaces: bool = False) -> dict:
+               cell_factor: float | None = None, surfaces: bool = False, backend: str | None = None) -> dict:
     """Median build and query seconds (query: transmittance and features, forward only)."""
+    from functools import partial
+
     from .trace import TraceAccel, trace
+
+    trace = partial(trace, backend=backend)
 
     if surfaces:
         means, quats, scales, opac, feats = make_surface_scene(n, device=device)
@@ -176,6 +185,90 @@ def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup:
     return dict(build=statistics.median(build), query=statistics.median(query), query_min=min(query),
                 cpu_seconds=statistics.median(cpu),
                 mean_visibility=float(trans.mean()), cells=list(accel.res), entries=int(accel.entries.numel()))
+
+
+def run_backends(repeats: int) -> dict:
+    """The compiled CPU backend against the torch path, alternated in one run so that the ratios share the
+    machine's load: rasterize + backward at 100 and 128 px (20k splats), the tracer query (1024 points x
+    64 directions, 20k splats, random volume and surfaces), and the compiled kernels' share of a step."""
+    from lumibench.progress import track
+
+    res: dict = {"raster": [], "trace": []}
+    cases = [("raster", 100), ("raster", 128), ("trace", False), ("trace", True)]
+    for kind, arg in track(cases, description="backends"):
+        t: dict = {"torch": [], "numba": []}
+        for _ in range(repeats):  # alternate: each round times both
+            for be in ("torch", "numba"):
+                if kind == "raster":
+                    sec, pairs, _, _ = time_raster(20_000, arg, 1, "cpu", backend=be)
+                else:
+                    sec = time_trace(20_000, 1024, 64, 1, "cpu", surfaces=arg, backend=be)["query"]
+                t[be].append(sec)
+        row = {"torch": statistics.median(t["torch"]), "numba": statistics.median(t["numba"])}
+        row["speedup"] = row["torch"] / row["numba"]
+        if kind == "raster":
+            row.update(size=arg, splats=20_000, pairs=pairs, ns_per_pair_numba=row["numba"] / pairs * 1e9)
+        else:
+            row.update(scene="surfaces" if arg else "random volume", points=1024, dirs=64, splats=20_000)
+        res[kind].append(row)
+    res["raster_kernels"] = raster_kernel_split(128, repeats)
+    res["compile"] = numba_compile_seconds()
+    return res
+
+
+def raster_kernel_split(size: int, repeats: int) -> dict:
+    """Where a compiled rasterize + backward step goes at ``size`` px / 20k splats: the kernels (projection,
+    compositing; forward and backward) and everything else (torch ops, conversions), from the profiler."""
+    from torch.profiler import profile
+
+    from .rasterize import rasterize
+
+    means, quats, scales, opac, feats, cam = make_scene(20_000, size)
+    params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, feats)]
+    for _ in range(2):
+        raster_loss(rasterize(*params, cam, background=torch.ones(3), backend="numba")).backward()
+    t0 = time.perf_counter()
+    with profile() as prof:
+        for _ in range(repeats):
+            out = rasterize(*params, cam, background=torch.ones(3), backend="numba")
+            raster_loss(out).backward()
+    total = (time.perf_counter() - t0) / repeats
+    ev = {e.key: e.cpu_time_total / 1e6 / repeats for e in prof.key_averages()}
+    keys = {"composite forward": "_RasterRows", "composite backward": "_RasterRowsBackward",
+            "projection forward": "_ProjectRows", "projection backward": "_ProjectRowsBackward"}
+    split = {name: ev.get(k, 0.0) for name, k in keys.items()}
+    split["other (torch, profiler overhead)"] = max(0.0, total - sum(split.values()))
+    return {"size": size, "splats": 20_000, "pairs": out.num_pairs, "seconds_per_step": total, "split_s": split,
+            "ns_per_pair": {k: v / out.num_pairs * 1e9 for k, v in split.items() if k.startswith("composite")}}
+
+
+def numba_compile_seconds() -> dict:
+    """First-call seconds of a rasterize + backward and a trace in fresh processes: with an empty numba cache
+    (compiling every kernel) and again with the cache that run left (loading them)."""
+    import subprocess
+    import tempfile
+
+    code = (
+        "import time, torch; t0 = time.perf_counter()\n"
+        "from method.splat.bench import make_scene, make_trace_queries, raster_loss\n"
+        "from method.splat.rasterize import rasterize\n"
+        "from method.splat.trace import trace\n"
+        "m, q, s, o, f, cam = make_scene(2000, 32)\n"
+        "p = [t.requires_grad_(True) for t in (m, q, s, o, f)]\n"
+        "t1 = time.perf_counter(); raster_loss(rasterize(*p, cam, backend='numba')).backward()\n"
+        "t2 = time.perf_counter(); org, d = make_trace_queries(m, q, s, 16, 8)\n"
+        "trace(m.detach(), q.detach(), s.detach(), o.detach(), f.detach(), org, d, backend='numba')\n"
+        "print(t2 - t1, time.perf_counter() - t2, t1 - t0)\n"
+    )
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        for label in ("cold", "warm"):
+            r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env,
+                               cwd=str(Path(__file__).resolve().parents[2]))
+            raster, tr, imports = (float(v) for v in r.stdout.strip().splitlines()[-1].split())
+            out[label] = {"raster_first_call_s": raster, "trace_first_call_s": tr, "imports_s": imports}
+    return out
 
 
 def peak_rss_mb(n: int, size: int, ref_size: int | None) -> dict:
@@ -334,6 +427,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
     ap.add_argument("--quick", action="store_true", help="small cases only (smoke test)")
     ap.add_argument("--trace-only", action="store_true", help="only the tracer keys (no rasterizer, sweep, chart)")
+    ap.add_argument("--backends", action="store_true",
+                    help="only the compiled CPU backend against the torch path (ratios, kernel split, compile time)")
     ap.add_argument("--trace-scaling", action="store_true",
                     help="also time the tracer at 20k-300k splats and 65k-1M rays (minutes on a CPU)")
     args = ap.parse_args(argv)
@@ -348,7 +443,11 @@ def main(argv=None) -> int:
     dev = args.device
     load_before = list(os.getloadavg())
     result = {"device": _device_name(dev), "threads": torch.get_num_threads()}
-    if args.trace_only:
+    if args.backends:
+        if dev != "cpu":
+            raise UserError("--backends compares the CPU backends; use --device cpu")
+        result.update({"unit": "seconds (median)", "repeats": args.repeats, "backends": run_backends(args.repeats)})
+    elif args.trace_only:
         result.update({"unit": "seconds (median)", "repeats": args.repeats}, **run_trace(dev, args.repeats))
     else:
         result.update(run_all(dev, args.repeats, args.quick, out_path))

@@ -29,6 +29,10 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
     ray has more (trace it again with a larger cap)."""
     R = o.shape[0]
     W = blk_plane.shape[1] // 4
+    o_max = 1.0
+    for s in range(rows.shape[0]):
+        o_max = max(o_max, rows[s, 12])
+    rho_max = 2.0 * math.log(o_max / alpha_min) + 1e-6  # o exp(-rho / 2) < alpha_min beyond it, any splat
     out_s = np.full((R, cap), -1, np.int64)
     out_a = np.zeros((R, cap))
     count = np.zeros(R, np.int64)
@@ -42,6 +46,7 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
         t_max = np.empty(3)
         t_delta = np.empty(3)
         iv = np.empty(3)
+        tt = np.empty(W)
         for i in range(b * RAY_BLOCK, min(R, (b + 1) * RAY_BLOCK)):
             t_enter = tmin[i]
             t_exit = math.inf
@@ -83,11 +88,14 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                 ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
                 dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
                 for blk in range(blk_start[flat], blk_start[flat + 1]):
-                    for w in range(W):  # the block's planes are contiguous: nx[W], ny[W], nz[W], offset[W]
+                    # the block's planes are contiguous (nx[W], ny[W], nz[W], offset[W]): the plane hits of
+                    # all W slots in one branch-free loop (vectorised), then the tests
+                    for w in range(W):
                         nx, ny, nz = blk_plane[blk, w], blk_plane[blk, W + w], blk_plane[blk, 2 * W + w]
-                        ow = nx * ox + ny * oy + nz * oz + blk_plane[blk, 3 * W + w]
-                        dw = nx * dx + ny * dy + nz * dz
-                        t = -ow / dw
+                        tt[w] = -(nx * ox + ny * oy + nz * oz + blk_plane[blk, 3 * W + w]) / (nx * dx + ny * dy
+                                                                                             + nz * dz)
+                    for w in range(W):
+                        t = tt[w]
                         if not (t >= t_cur and t < t_out):  # also rejects NaN (padding, ray in the plane)
                             continue
                         s = slot_splat[blk * W + w]
@@ -96,7 +104,10 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                         pz = oz + t * dz
                         pu = rows[s, 0] * px + rows[s, 1] * py + rows[s, 2] * pz + rows[s, 3]
                         pv = rows[s, 4] * px + rows[s, 5] * py + rows[s, 6] * pz + rows[s, 7]
-                        a = min(rows[s, 12] * math.exp(-0.5 * (pu * pu + pv * pv)), max_alpha)
+                        rho = pu * pu + pv * pv
+                        if rho > rho_max:  # alpha < alpha_min for any opacity: no exp (its underflow is slow)
+                            continue
+                        a = min(rows[s, 12] * math.exp(-0.5 * rho), max_alpha)
                         if a < alpha_min:
                             continue
                         k = m  # insertion by t; equal t keeps entry (splat id) order
