@@ -21,7 +21,7 @@ Everything geometric runs without gradients; the surviving hits are recomputed w
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -57,6 +57,7 @@ class TraceAccel:
     slot_splat: torch.Tensor  # (n_blocks * W,) splat id per slot (-1: padding, whose plane is all zero)
     alpha_min: float
     num_splats: int
+    cache: dict = field(default_factory=dict, repr=False, compare=False)  # other backends' views of the grid
 
     @staticmethod
     def build(means, quats, scales, opacities, alpha_min: float = 0.01, cell_size: float | None = None,

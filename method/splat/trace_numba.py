@@ -33,8 +33,8 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
     for s in range(rows.shape[0]):
         o_max = max(o_max, rows[s, 12])
     rho_max = 2.0 * math.log(o_max / alpha_min) + 1e-6  # o exp(-rho / 2) < alpha_min beyond it, any splat
-    out_s = np.full((R, cap), -1, np.int64)
-    out_a = np.zeros((R, cap))
+    out_s = np.empty((R, cap), np.int64)  # only the first count[i] slots of a row are written
+    out_a = np.empty((R, cap))
     count = np.zeros(R, np.int64)
     n_blocks = (R + RAY_BLOCK - 1) // RAY_BLOCK
     for b in prange(n_blocks):
@@ -145,28 +145,58 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
 
 
 
+@njit(cache=True, parallel=True, error_model="numpy")
+def compact(out_s, out_a, count, cap, over_row, s2, a2, c2):
+    """Flat (ray, splat, alpha) from the per-ray slots; rays that overflowed (over_row[i] >= 0) take their
+    hits from the second pass (s2, a2, c2)."""
+    R = count.shape[0]
+    n = np.empty(R, np.int64)
+    for i in range(R):
+        n[i] = c2[over_row[i]] if over_row[i] >= 0 else count[i]
+    start = np.empty(R + 1, np.int64)
+    start[0] = 0
+    for i in range(R):
+        start[i + 1] = start[i] + n[i]
+    ray = np.empty(start[R], np.int64)
+    spl = np.empty(start[R], np.int64)
+    alp = np.empty(start[R])
+    for i in prange(R):
+        k = over_row[i]
+        for j in range(n[i]):
+            ray[start[i] + j] = i
+            spl[start[i] + j] = s2[k, j] if k >= 0 else out_s[i, j]
+            alp[start[i] + j] = a2[k, j] if k >= 0 else out_a[i, j]
+    return ray, spl, alp
+
+
+def _grid(accel):
+    """The grid as the kernel reads it, converted once per TraceAccel (stage 2 reuses each frame's grid)."""
+    g = accel.cache.get("numba")
+    if g is None:
+        counts = accel.cell_start[1:] - accel.cell_start[:-1]
+        max_cell = max(1, int(counts.max())) if counts.numel() else 1
+        g = ((as_f64(accel.lo), as_f64(accel.cell), np.asarray(accel.res, np.int64),
+              np.ascontiguousarray(accel.blk_start.cpu().numpy()), as_f64(accel.blk_plane),
+              np.ascontiguousarray(accel.slot_splat.cpu().numpy()), as_f64(accel.splat_rows)), max_cell)
+        accel.cache["numba"] = g
+    return g
+
+
 def march_hits(accel, origins, dirs, tmin, T_min: float, max_alpha: float):
     """(ray, splat, alpha) of the composited hits, rays in order and each ray's hits front to back."""
     match_torch_threads()
     dt = origins.dtype
     o, d, tm = as_f64(origins), as_f64(dirs), as_f64(tmin)
-    counts = (accel.cell_start[1:] - accel.cell_start[:-1])
-    max_cell = max(1, int(counts.max())) if counts.numel() else 1
-    grid = (as_f64(accel.lo), as_f64(accel.cell), np.asarray(accel.res, np.int64),
-            np.ascontiguousarray(accel.blk_start.numpy()), as_f64(accel.blk_plane),
-            np.ascontiguousarray(accel.slot_splat.numpy()), as_f64(accel.splat_rows))
+    grid, max_cell = _grid(accel)
     args = (float(accel.alpha_min), float(T_min), float(max_alpha))
     out_s, out_a, count = march(o, d, tm, *grid, *args, CAP, max_cell)
     over = np.nonzero(count > CAP)[0]
+    over_row = np.full(o.shape[0], -1, np.int64)
     if over.size:  # the stop rule bounds the hits: T_min > (1 - alpha_min)^n
         most = int(math.ceil(math.log(T_min) / math.log1p(-accel.alpha_min))) + 1
         s2, a2, c2 = march(o[over], d[over], tm[over], *grid, *args, most, max_cell)
-        wide_s = np.full((o.shape[0], most), -1, np.int64)
-        wide_a = np.zeros((o.shape[0], most))
-        wide_s[:, :CAP], wide_a[:, :CAP] = out_s, out_a
-        wide_s[over], wide_a[over] = s2, a2
-        out_s, out_a = wide_s, wide_a
-        count[over] = c2
-    keep = out_s >= 0
-    ray = np.nonzero(keep)[0]
-    return (torch.from_numpy(ray), torch.from_numpy(out_s[keep]), torch.from_numpy(out_a[keep]).to(dt))
+        over_row[over] = np.arange(over.size)
+    else:
+        s2, a2, c2 = np.zeros((1, 1), np.int64), np.zeros((1, 1)), np.zeros(1, np.int64)
+    ray, spl, alp = compact(out_s, out_a, count, CAP, over_row, s2, a2, c2)
+    return torch.from_numpy(ray), torch.from_numpy(spl), torch.from_numpy(alp).to(dt)
