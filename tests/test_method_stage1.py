@@ -311,9 +311,14 @@ def _cfg(extra=()):
     return load_method_config("ci", TINY + list(extra))
 
 
-def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path):
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path, monkeypatch, backend):
+    import method.splat.backend as backend_mod
     from method.train import checkpoint_paths, load_checkpoint, train_stage1
 
+    if backend == "numba" and not backend_mod.numba_available():
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(backend_mod, "_default", backend)
     torch.set_num_threads(1)
     full = tmp_path / "full"
     train_stage1(ci_dataset, "city", full, _cfg(), seed=3, progress=False, write_outputs=False)

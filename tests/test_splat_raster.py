@@ -17,12 +17,13 @@ KEYS = ("features", "alpha", "normal", "depth_expected", "depth_median", "distor
 
 @pytest.fixture(autouse=True, params=["torch", "numba"])
 def splat_backend(request, monkeypatch):
-    """Every test here runs on the torch reference and on the compiled CPU backend."""
+    """Every test here runs on the torch reference and on the compiled CPU backend (as 'auto': CUDA tensors
+    in the GPU tests still take the torch path)."""
     import method.splat.backend as backend_mod
 
     if request.param == "numba" and not backend_mod.numba_available():
         pytest.skip("numba is not installed")
-    monkeypatch.setattr(backend_mod, "_default", request.param)
+    monkeypatch.setattr(backend_mod, "_default", "auto" if request.param == "numba" else "torch")
     return request.param
 
 
