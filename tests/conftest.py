@@ -31,3 +31,15 @@ def ci_dataset(tmp_path_factory) -> Path:
 
     data = tmp_path_factory.mktemp("ci_data")
     return render_scene(CI_SCENE, "ci", data, jobs=2, progress=False)
+
+
+@pytest.fixture(params=["torch", "numba"])
+def splat_backend(request, monkeypatch):
+    """Tests that use it run on the torch reference and on the compiled CPU backend (as 'auto': CUDA tensors
+    in the GPU tests still take the torch path)."""
+    import method.splat.backend as backend_mod
+
+    if request.param == "numba" and not backend_mod.numba_available():
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(backend_mod, "_default", "auto" if request.param == "numba" else "torch")
+    return request.param

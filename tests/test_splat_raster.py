@@ -11,20 +11,9 @@ from method.splat.camera import Camera
 from method.splat.rasterize import ALPHA_MIN, rasterize
 from method.splat.reference import rasterize_dense
 
+pytestmark = pytest.mark.usefixtures("splat_backend")  # conftest: torch and the compiled backend
 F64 = torch.float64
 KEYS = ("features", "alpha", "normal", "depth_expected", "depth_median", "distortion", "normal_from_depth")
-
-
-@pytest.fixture(autouse=True, params=["torch", "numba"])
-def splat_backend(request, monkeypatch):
-    """Every test here runs on the torch reference and on the compiled CPU backend (as 'auto': CUDA tensors
-    in the GPU tests still take the torch path)."""
-    import method.splat.backend as backend_mod
-
-    if request.param == "numba" and not backend_mod.numba_available():
-        pytest.skip("numba is not installed")
-    monkeypatch.setattr(backend_mod, "_default", "auto" if request.param == "numba" else "torch")
-    return request.param
 
 
 def random_scene(n=48, seed=0, size=16, channels=3, scale=(0.05, 0.3), opacity=(0.05, 0.95), spread=1.2):
