@@ -51,8 +51,12 @@ class DynamicScene:
         return binary_concrete(self.g.t["p_logit"], self.temperature, training=False)
 
     def deform(self, t: float, *, p_mode: str = "inference", generator: torch.Generator | None = None,
-               fixed_p: float | None = None) -> Deformed:
-        """Gaussians at time ``t``. ``p_mode``: "sample" (training), "inference" (u = 0.5), "ones" (warm-up)."""
+               fixed_p: float | None = None, trunk_cache: dict | None = None) -> Deformed:
+        """Gaussians at time ``t``. ``p_mode``: "sample" (training), "inference" (u = 0.5), "ones" (warm-up).
+
+        ``trunk_cache`` (stage 2, where the canonical means, the network's trunk and its motion heads are
+        frozen): the trunk's features and the motion per time are computed once and kept there; only the
+        colour head runs each call. The same values as without it (the same operations, once)."""
         g = self.g
         means, quats, colours = g.means, g.quats, g.colours
         n = len(g)
@@ -70,7 +74,20 @@ class DynamicScene:
         else:
             p = self.p_inference()
         x = (means - self.center.to(means)) / self.extent
-        d_mu, d_rot, d_col = self.net(x, t)
+        if trunk_cache is None:
+            d_mu, d_rot, d_col = self.net(x, t)
+        else:
+            trainable = [n for n, q in self.net.named_parameters() if q.requires_grad and not n.startswith("d_col.")]
+            if means.requires_grad or trainable:
+                raise ValueError("trunk_cache needs frozen means, trunk and motion heads "
+                                 f"(trainable: {', '.join(trainable + (['means'] if means.requires_grad else []))})")
+            key = float(t)
+            if key not in trunk_cache:
+                with torch.no_grad():
+                    h = self.net.trunk(x, t)
+                    trunk_cache[key] = (h, self.net.d_mu(h), self.net.d_rot(h))
+            h, d_mu, d_rot = trunk_cache[key]
+            d_col = torch.clamp_max(self.net.d_col(h), 1.0)
         if not self.delta_colour:
             d_col = torch.zeros_like(d_col)
         pc = p[:, None]

@@ -254,10 +254,11 @@ def decorrelated_l2(a: torch.Tensor, b: torch.Tensor, target: torch.Tensor) -> t
 
 
 def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: dict, generator: torch.Generator,
-                     accel_cache: dict, frame_key, iteration: int):
-    """One stage-2 loss evaluation; returns (loss, terms, rays traced)."""
+                     accel_cache: dict, frame_key, iteration: int, trunk_cache: dict | None = None):
+    """One stage-2 loss evaluation; returns (loss, terms, rays traced). ``trunk_cache``: see
+    DynamicScene.deform (the frozen network's trunk once per training time)."""
     s2 = cfg["stage2"]
-    d = scene.deform(view.time, p_mode="inference")
+    d = scene.deform(view.time, p_mode="inference", trunk_cache=trunk_cache)
     out = raster_materials(d, mats, view.camera, data_bg)
     lc, _ = losses.colour_loss(out.features[..., :3], view.rgb, cfg["stage1"]["lambda_dssim"])
     fg = torch.nonzero(((view.alpha > 0.5) & (out.alpha.detach() > 0.5)).reshape(-1)).squeeze(1)

@@ -103,6 +103,7 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
                 fh.write(json.dumps({"iteration": 0, "env_fit": env_fit_record}) + "\n")
     timer = Timer(dev)
     accel_cache: dict = {}
+    trunk_cache: dict | None = {} if scene.net is not None else None  # ~10 MB per training time at 20k
     rays_total = 0
     t0 = time.perf_counter()
     c0 = time.process_time()
@@ -115,7 +116,8 @@ def train_stage2(scene_dir, light: str, run_dir, cfg: dict, *, seed: int = 0, de
             timer.start()
             k = int(torch.randint(len(data.train), (1,), generator=gen))
             view = data.train[k]
-            loss, terms, rays = stage2_step_loss(scene, mats, view, data.background, cfg, gen, accel_cache, k, it)
+            loss, terms, rays = stage2_step_loss(scene, mats, view, data.background, cfg, gen, accel_cache, k, it,
+                                                 trunk_cache)
             rays_total += rays
             for name, val in terms.items():
                 _finite_or_raise(run_dir, it, f"loss term '{name}'", val, stage=2)

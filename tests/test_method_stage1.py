@@ -594,3 +594,31 @@ def test_ci_run_of_spheres_learns(ci_dataset, tmp_path):
     psnr_rot = -10 * math.log10(sum(rot) / len(rot))
     assert psnr_same > 20.0, (psnr_same, psnr_rot)
     assert psnr_same > psnr_rot - 0.5, (psnr_same, psnr_rot)  # never clearly better turned round
+
+
+def test_stage2_trunk_cache_gives_the_same_deformation_and_head_gradients(monkeypatch):
+    """Stage 2 keeps the frozen trunk's features per time: the same Gaussians and colour-head gradients as
+    running the whole network, the trunk run once per time, and a refusal while the trunk still trains."""
+    from method.stage2 import freeze_geometry
+
+    scene = _tiny_scene()
+    _randomise_heads(scene.net)
+    head = freeze_geometry(scene)
+    cache: dict = {}
+    calls = []
+    trunk = scene.net.trunk
+    monkeypatch.setattr(scene.net, "trunk", lambda x, t: calls.append(t) or trunk(x, t))
+    for t in (0.25, 0.25, 0.75):
+        outs = []
+        for c in (None, cache):
+            for p in head:
+                p.grad = None
+            d = scene.deform(t, p_mode="inference", trunk_cache=c)
+            (d.colours.sum() + 0.3 * d.means.sum() + d.quats.sum()).backward()
+            outs.append([d.means, d.quats, d.colours] + [p.grad.clone() for p in head])
+        for a, b in zip(*outs):
+            assert torch.equal(a, b)
+    assert sorted(cache) == [0.25, 0.75] and calls.count(0.25) == 3  # uncached twice, cached once
+    scene.net.layers[0].weight.requires_grad_(True)
+    with pytest.raises(ValueError, match="frozen means, trunk"):
+        scene.deform(0.5, trunk_cache={})

@@ -44,6 +44,14 @@ class DeformNet(nn.Module):
 
     def forward(self, x_norm: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``x_norm``: canonical positions mapped to about [-1, 1] (scene box); ``t`` in [0, 1]."""
+        return self.heads(self.trunk(x_norm, t))
+
+    def heads(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(d mu, d r, d c) from the trunk's last features."""
+        return self.d_mu(h), self.d_rot(h), torch.clamp_max(self.d_col(h), 1.0)
+
+    def trunk(self, x_norm: torch.Tensor, t: float) -> torch.Tensor:
+        """The last hidden features (N, width): everything but the three heads."""
         tt = torch.full((1, 1), float(t), dtype=x_norm.dtype, device=x_norm.device)
         tfeat = self.time_net(positional_encoding(tt, self.time_freqs)).expand(x_norm.shape[0], -1)
         inp = torch.cat([positional_encoding(x_norm, self.pos_freqs), tfeat], -1)
@@ -52,7 +60,7 @@ class DeformNet(nn.Module):
             if self.skip and i == self.skip:
                 h = torch.cat([h, inp], -1)
             h = torch.relu(layer(h))
-        return self.d_mu(h), self.d_rot(h), torch.clamp_max(self.d_col(h), 1.0)
+        return h
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
