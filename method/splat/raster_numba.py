@@ -274,84 +274,84 @@ def project(means, quats, scales, opac, shift, rot, trans, cam_c, f, cx, cy, wid
     k2 = np.zeros(n)
     big = float(max(width, height)) * 4.0 + 10.0
     for c in prange((n + SPLAT_BLOCK - 1) // SPLAT_BLOCK):
-      m = np.empty((3, 3))  # rows m0, m1, m2 of M = K [a b p]
-      for i in range(c * SPLAT_BLOCK, min(n, (c + 1) * SPLAT_BLOCK)):
-        qn = math.sqrt(quats[i, 0] ** 2 + quats[i, 1] ** 2 + quats[i, 2] ** 2 + quats[i, 3] ** 2)
-        qn = max(qn, 1e-12)
-        w, x, y, z = quats[i, 0] / qn, quats[i, 1] / qn, quats[i, 2] / qn, quats[i, 3] / qn
-        # columns of the rotation: t_u, t_v (scaled below) and the normal
-        r00, r10, r20 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
-        r01, r11, r21 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
-        r02, r12, r22 = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
-        su, sv = scales[i, 0], scales[i, 1]
-        for k in range(3):
-            a_k = rot[k, 0] * r00 * su + rot[k, 1] * r10 * su + rot[k, 2] * r20 * su
-            b_k = rot[k, 0] * r01 * sv + rot[k, 1] * r11 * sv + rot[k, 2] * r21 * sv
-            p_k = rot[k, 0] * means[i, 0] + rot[k, 1] * means[i, 1] + rot[k, 2] * means[i, 2] + trans[k]
-            scale = f if k < 2 else 1.0
-            m[k, 0], m[k, 1], m[k, 2] = scale * a_k, scale * b_k, scale * p_k
-        A0 = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
-        A1 = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
-        A2 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-        B0 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
-        B1 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
-        B2 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
-        C0 = m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1]
-        C1 = m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2]
-        C2 = m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0]
-        zc = m[2, 2]
-        zs = zc if abs(zc) > 1e-12 else 1e-12
-        ctr_x = m[0, 2] / zs  # m0 already carries f
-        ctr_y = m[1, 2] / zs
-        sx, sy = shift[i, 0], shift[i, 1]
-        rows[i, 0] = A0 - sx * B0 - sy * C0
-        rows[i, 1] = A1 - sx * B1 - sy * C1
-        rows[i, 2] = A2 - sx * B2 - sy * C2
-        rows[i, 3], rows[i, 4], rows[i, 5] = B0, B1, B2
-        rows[i, 6], rows[i, 7], rows[i, 8] = C0, C1, C2
-        rows[i, 9] = m[2, 0] * A0 + m[2, 1] * A1 + m[2, 2] * A2
-        rows[i, 10] = ctr_x + sx
-        rows[i, 11] = ctr_y + sy
-        rows[i, 12] = zc
-        rows[i, 13] = opac[i]
-        view = (cam_c[0] - means[i, 0]) * r02 + (cam_c[1] - means[i, 1]) * r12 + (cam_c[2] - means[i, 2]) * r22
-        sg = -1.0 if view < 0 else 1.0
-        sign[i] = sg
-        nrm[i, 0], nrm[i, 1], nrm[i, 2] = sg * r02, sg * r12, sg * r22
-        # bounds of the support ellipse (dual conic) union the low-pass disc, as _screen_bounds
-        o = opac[i]
-        log_t = math.log(max(o / alpha_min, 1.0))
-        kk = 2.0 * log_t
-        k2[i] = kk
-        c00 = kk * (m[0, 0] * m[0, 0] + m[0, 1] * m[0, 1]) - m[0, 2] * m[0, 2]
-        c11 = kk * (m[1, 0] * m[1, 0] + m[1, 1] * m[1, 1]) - m[1, 2] * m[1, 2]
-        c22 = kk * (m[2, 0] * m[2, 0] + m[2, 1] * m[2, 1]) - m[2, 2] * m[2, 2]
-        c02 = kk * (m[0, 0] * m[2, 0] + m[0, 1] * m[2, 1]) - m[0, 2] * m[2, 2]
-        c12 = kk * (m[1, 0] * m[2, 0] + m[1, 1] * m[2, 1]) - m[1, 2] * m[2, 2]
-        bnd = c22 < -1e-12 * max(m[2, 2] * m[2, 2], 1e-30)
-        bounded[i] = bnd
-        c22s = c22 if bnd else -1.0
-        ex = math.sqrt(max(c02 * c02 - c00 * c22s, 0.0)) / (-c22s)
-        ey = math.sqrt(max(c12 * c12 - c11 * c22s, 0.0)) / (-c22s)
-        mx, my = c02 / c22s, c12 / c22s
-        rd = math.sqrt(log_t)
-        if bnd:
-            xmin = min(mx - ex, ctr_x - rd) + cx + sx
-            xmax = max(mx + ex, ctr_x + rd) + cx + sx
-            ymin = min(my - ey, ctr_y - rd) + cy + sy
-            ymax = max(my + ey, ctr_y + rd) + cy + sy
-            xmin, xmax = min(max(xmin, -big), big), min(max(xmax, -big), big)
-            ymin, ymax = min(max(ymin, -big), big), min(max(ymax, -big), big)
-        else:
-            xmin, xmax, ymin, ymax = -big, big, -big, big
-        pad = 1e-3
-        x0[i] = max(int(math.ceil(xmin - 0.5 - pad)), 0)
-        x1[i] = min(int(math.floor(xmax - 0.5 + pad)), width - 1)
-        y0[i] = max(int(math.ceil(ymin - 0.5 - pad)), 0)
-        y1[i] = min(int(math.floor(ymax - 0.5 + pad)), height - 1)
-        ok = zc >= near and o >= alpha_min and x1[i] >= x0[i] and y1[i] >= y0[i]
-        valid[i] = ok
-        radii[i] = max(xmax - xmin, ymax - ymin) * 0.5 if ok else 0.0
+        m = np.empty((3, 3))  # rows m0, m1, m2 of M = K [a b p]
+        for i in range(c * SPLAT_BLOCK, min(n, (c + 1) * SPLAT_BLOCK)):
+            qn = math.sqrt(quats[i, 0] ** 2 + quats[i, 1] ** 2 + quats[i, 2] ** 2 + quats[i, 3] ** 2)
+            qn = max(qn, 1e-12)
+            w, x, y, z = quats[i, 0] / qn, quats[i, 1] / qn, quats[i, 2] / qn, quats[i, 3] / qn
+            # columns of the rotation: t_u, t_v (scaled below) and the normal
+            r00, r10, r20 = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+            r01, r11, r21 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+            r02, r12, r22 = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+            su, sv = scales[i, 0], scales[i, 1]
+            for k in range(3):
+                a_k = rot[k, 0] * r00 * su + rot[k, 1] * r10 * su + rot[k, 2] * r20 * su
+                b_k = rot[k, 0] * r01 * sv + rot[k, 1] * r11 * sv + rot[k, 2] * r21 * sv
+                p_k = rot[k, 0] * means[i, 0] + rot[k, 1] * means[i, 1] + rot[k, 2] * means[i, 2] + trans[k]
+                scale = f if k < 2 else 1.0
+                m[k, 0], m[k, 1], m[k, 2] = scale * a_k, scale * b_k, scale * p_k
+            A0 = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+            A1 = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+            A2 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+            B0 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+            B1 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+            B2 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+            C0 = m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1]
+            C1 = m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2]
+            C2 = m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0]
+            zc = m[2, 2]
+            zs = zc if abs(zc) > 1e-12 else 1e-12
+            ctr_x = m[0, 2] / zs  # m0 already carries f
+            ctr_y = m[1, 2] / zs
+            sx, sy = shift[i, 0], shift[i, 1]
+            rows[i, 0] = A0 - sx * B0 - sy * C0
+            rows[i, 1] = A1 - sx * B1 - sy * C1
+            rows[i, 2] = A2 - sx * B2 - sy * C2
+            rows[i, 3], rows[i, 4], rows[i, 5] = B0, B1, B2
+            rows[i, 6], rows[i, 7], rows[i, 8] = C0, C1, C2
+            rows[i, 9] = m[2, 0] * A0 + m[2, 1] * A1 + m[2, 2] * A2
+            rows[i, 10] = ctr_x + sx
+            rows[i, 11] = ctr_y + sy
+            rows[i, 12] = zc
+            rows[i, 13] = opac[i]
+            view = (cam_c[0] - means[i, 0]) * r02 + (cam_c[1] - means[i, 1]) * r12 + (cam_c[2] - means[i, 2]) * r22
+            sg = -1.0 if view < 0 else 1.0
+            sign[i] = sg
+            nrm[i, 0], nrm[i, 1], nrm[i, 2] = sg * r02, sg * r12, sg * r22
+            # bounds of the support ellipse (dual conic) union the low-pass disc, as _screen_bounds
+            o = opac[i]
+            log_t = math.log(max(o / alpha_min, 1.0))
+            kk = 2.0 * log_t
+            k2[i] = kk
+            c00 = kk * (m[0, 0] * m[0, 0] + m[0, 1] * m[0, 1]) - m[0, 2] * m[0, 2]
+            c11 = kk * (m[1, 0] * m[1, 0] + m[1, 1] * m[1, 1]) - m[1, 2] * m[1, 2]
+            c22 = kk * (m[2, 0] * m[2, 0] + m[2, 1] * m[2, 1]) - m[2, 2] * m[2, 2]
+            c02 = kk * (m[0, 0] * m[2, 0] + m[0, 1] * m[2, 1]) - m[0, 2] * m[2, 2]
+            c12 = kk * (m[1, 0] * m[2, 0] + m[1, 1] * m[2, 1]) - m[1, 2] * m[2, 2]
+            bnd = c22 < -1e-12 * max(m[2, 2] * m[2, 2], 1e-30)
+            bounded[i] = bnd
+            c22s = c22 if bnd else -1.0
+            ex = math.sqrt(max(c02 * c02 - c00 * c22s, 0.0)) / (-c22s)
+            ey = math.sqrt(max(c12 * c12 - c11 * c22s, 0.0)) / (-c22s)
+            mx, my = c02 / c22s, c12 / c22s
+            rd = math.sqrt(log_t)
+            if bnd:
+                xmin = min(mx - ex, ctr_x - rd) + cx + sx
+                xmax = max(mx + ex, ctr_x + rd) + cx + sx
+                ymin = min(my - ey, ctr_y - rd) + cy + sy
+                ymax = max(my + ey, ctr_y + rd) + cy + sy
+                xmin, xmax = min(max(xmin, -big), big), min(max(xmax, -big), big)
+                ymin, ymax = min(max(ymin, -big), big), min(max(ymax, -big), big)
+            else:
+                xmin, xmax, ymin, ymax = -big, big, -big, big
+            pad = 1e-3
+            x0[i] = max(int(math.ceil(xmin - 0.5 - pad)), 0)
+            x1[i] = min(int(math.floor(xmax - 0.5 + pad)), width - 1)
+            y0[i] = max(int(math.ceil(ymin - 0.5 - pad)), 0)
+            y1[i] = min(int(math.floor(ymax - 0.5 + pad)), height - 1)
+            ok = zc >= near and o >= alpha_min and x1[i] >= x0[i] and y1[i] >= y0[i]
+            valid[i] = ok
+            radii[i] = max(xmax - xmin, ymax - ymin) * 0.5 if ok else 0.0
     return rows, nrm, sign, x0, x1, y0, y1, valid, radii, bounded, k2
 
 
@@ -365,92 +365,92 @@ def project_backward(means, quats, scales, shift, rot, trans, f, sign, g_rows, g
     g_opac = np.zeros(n)
     g_shift = np.zeros((n, 2))
     for ch in prange((n + SPLAT_BLOCK - 1) // SPLAT_BLOCK):
-      R = np.empty((3, 3))
-      m = np.empty((3, 3))
-      gm = np.empty((3, 3))
-      gR = np.empty((3, 3))
-      A = np.empty(3)
-      B = np.empty(3)
-      C = np.empty(3)
-      gA = np.empty(3)
-      gB = np.empty(3)
-      gC = np.empty(3)
-      gtu = np.empty(3)
-      gtv = np.empty(3)
-      for i in range(ch * SPLAT_BLOCK, min(n, (ch + 1) * SPLAT_BLOCK)):
-        qn = max(math.sqrt(quats[i, 0] ** 2 + quats[i, 1] ** 2 + quats[i, 2] ** 2 + quats[i, 3] ** 2), 1e-12)
-        w, x, y, z = quats[i, 0] / qn, quats[i, 1] / qn, quats[i, 2] / qn, quats[i, 3] / qn
-        R[0, 0], R[1, 0], R[2, 0] = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
-        R[0, 1], R[1, 1], R[2, 1] = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
-        R[0, 2], R[1, 2], R[2, 2] = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
-        su, sv = scales[i, 0], scales[i, 1]
-        for k in range(3):
-            a_k = (rot[k, 0] * R[0, 0] + rot[k, 1] * R[1, 0] + rot[k, 2] * R[2, 0]) * su
-            b_k = (rot[k, 0] * R[0, 1] + rot[k, 1] * R[1, 1] + rot[k, 2] * R[2, 1]) * sv
-            p_k = rot[k, 0] * means[i, 0] + rot[k, 1] * means[i, 1] + rot[k, 2] * means[i, 2] + trans[k]
-            scale = f if k < 2 else 1.0
-            m[k, 0], m[k, 1], m[k, 2] = scale * a_k, scale * b_k, scale * p_k
-        g = g_rows[i]
-        sx, sy = shift[i, 0], shift[i, 1]
-        for k in range(3):  # rows 0:3 hold A - sx B - sy C
-            gA[k] = g[k]
-            gB[k] = g[3 + k] - sx * g[k]
-            gC[k] = g[6 + k] - sy * g[k]
-            gm[k, 0] = 0.0
-            gm[k, 1] = 0.0
-            gm[k, 2] = 0.0
-        g_opac[i] = g[13]
-        A[0] = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
-        A[1] = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
-        A[2] = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-        B[0] = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
-        B[1] = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
-        B[2] = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
-        C[0] = m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1]
-        C[1] = m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2]
-        C[2] = m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0]
-        g_shift[i, 0] = g[10] - (g[0] * B[0] + g[1] * B[1] + g[2] * B[2])
-        g_shift[i, 1] = g[11] - (g[0] * C[0] + g[1] * C[1] + g[2] * C[2])
-        for k in range(3):  # det = m2 . A
-            gm[2, k] += g[9] * A[k]
-            gA[k] += g[9] * m[2, k]
-        _cross_back(m, 0, 1, gA, gm)  # A = m0 x m1
-        _cross_back(m, 1, 2, gB, gm)  # B = m1 x m2
-        _cross_back(m, 2, 0, gC, gm)  # C = m2 x m0
-        zc = m[2, 2]
-        if abs(zc) > 1e-12:
-            gm[0, 2] += g[10] / zc
-            gm[1, 2] += g[11] / zc
-            gm[2, 2] -= (g[10] * m[0, 2] + g[11] * m[1, 2]) / (zc * zc)
-        gm[2, 2] += g[12]
-        # m0 = f (a0, b0, p0), m1 = f (a1, b1, p1), m2 = (a2, b2, p2); a = rot t_u, b = rot t_v, p = rot mean + t
-        for j in range(3):
-            gtu[j] = 0.0
-            gtv[j] = 0.0
-        for k in range(3):
-            scale = f if k < 2 else 1.0
+        R = np.empty((3, 3))
+        m = np.empty((3, 3))
+        gm = np.empty((3, 3))
+        gR = np.empty((3, 3))
+        A = np.empty(3)
+        B = np.empty(3)
+        C = np.empty(3)
+        gA = np.empty(3)
+        gB = np.empty(3)
+        gC = np.empty(3)
+        gtu = np.empty(3)
+        gtv = np.empty(3)
+        for i in range(ch * SPLAT_BLOCK, min(n, (ch + 1) * SPLAT_BLOCK)):
+            qn = max(math.sqrt(quats[i, 0] ** 2 + quats[i, 1] ** 2 + quats[i, 2] ** 2 + quats[i, 3] ** 2), 1e-12)
+            w, x, y, z = quats[i, 0] / qn, quats[i, 1] / qn, quats[i, 2] / qn, quats[i, 3] / qn
+            R[0, 0], R[1, 0], R[2, 0] = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+            R[0, 1], R[1, 1], R[2, 1] = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+            R[0, 2], R[1, 2], R[2, 2] = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+            su, sv = scales[i, 0], scales[i, 1]
+            for k in range(3):
+                a_k = (rot[k, 0] * R[0, 0] + rot[k, 1] * R[1, 0] + rot[k, 2] * R[2, 0]) * su
+                b_k = (rot[k, 0] * R[0, 1] + rot[k, 1] * R[1, 1] + rot[k, 2] * R[2, 1]) * sv
+                p_k = rot[k, 0] * means[i, 0] + rot[k, 1] * means[i, 1] + rot[k, 2] * means[i, 2] + trans[k]
+                scale = f if k < 2 else 1.0
+                m[k, 0], m[k, 1], m[k, 2] = scale * a_k, scale * b_k, scale * p_k
+            g = g_rows[i]
+            sx, sy = shift[i, 0], shift[i, 1]
+            for k in range(3):  # rows 0:3 hold A - sx B - sy C
+                gA[k] = g[k]
+                gB[k] = g[3 + k] - sx * g[k]
+                gC[k] = g[6 + k] - sy * g[k]
+                gm[k, 0] = 0.0
+                gm[k, 1] = 0.0
+                gm[k, 2] = 0.0
+            g_opac[i] = g[13]
+            A[0] = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+            A[1] = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+            A[2] = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+            B[0] = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+            B[1] = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+            B[2] = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+            C[0] = m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1]
+            C[1] = m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2]
+            C[2] = m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0]
+            g_shift[i, 0] = g[10] - (g[0] * B[0] + g[1] * B[1] + g[2] * B[2])
+            g_shift[i, 1] = g[11] - (g[0] * C[0] + g[1] * C[1] + g[2] * C[2])
+            for k in range(3):  # det = m2 . A
+                gm[2, k] += g[9] * A[k]
+                gA[k] += g[9] * m[2, k]
+            _cross_back(m, 0, 1, gA, gm)  # A = m0 x m1
+            _cross_back(m, 1, 2, gB, gm)  # B = m1 x m2
+            _cross_back(m, 2, 0, gC, gm)  # C = m2 x m0
+            zc = m[2, 2]
+            if abs(zc) > 1e-12:
+                gm[0, 2] += g[10] / zc
+                gm[1, 2] += g[11] / zc
+                gm[2, 2] -= (g[10] * m[0, 2] + g[11] * m[1, 2]) / (zc * zc)
+            gm[2, 2] += g[12]
+            # m0 = f (a0, b0, p0), m1 = f (a1, b1, p1), m2 = (a2, b2, p2); a = rot t_u, b = rot t_v, p = rot mean + t
             for j in range(3):
-                gtu[j] += rot[k, j] * gm[k, 0] * scale
-                gtv[j] += rot[k, j] * gm[k, 1] * scale
-                g_means[i, j] += rot[k, j] * gm[k, 2] * scale
-        for j in range(3):
-            gR[j, 0] = gtu[j] * su
-            gR[j, 1] = gtv[j] * sv
-            gR[j, 2] = sign[i] * g_nrm[i, j]
-        g_scales[i, 0] = R[0, 0] * gtu[0] + R[1, 0] * gtu[1] + R[2, 0] * gtu[2]
-        g_scales[i, 1] = R[0, 1] * gtv[0] + R[1, 1] * gtv[1] + R[2, 1] * gtv[2]
-        gw = 2 * (-z * gR[0, 1] + y * gR[0, 2] + z * gR[1, 0] - x * gR[1, 2] - y * gR[2, 0] + x * gR[2, 1])
-        gx = 2 * (y * gR[0, 1] + z * gR[0, 2] + y * gR[1, 0] - 2 * x * gR[1, 1] - w * gR[1, 2] + z * gR[2, 0]
-                  + w * gR[2, 1] - 2 * x * gR[2, 2])
-        gy = 2 * (-2 * y * gR[0, 0] + x * gR[0, 1] + w * gR[0, 2] + x * gR[1, 0] + z * gR[1, 2] - w * gR[2, 0]
-                  + z * gR[2, 1] - 2 * y * gR[2, 2])
-        gz = 2 * (-2 * z * gR[0, 0] - w * gR[0, 1] + x * gR[0, 2] + w * gR[1, 0] - 2 * z * gR[1, 1] + y * gR[1, 2]
-                  + x * gR[2, 0] + y * gR[2, 1])
-        dot = w * gw + x * gx + y * gy + z * gz  # through the normalisation q = q_raw / |q_raw|
-        g_quats[i, 0] = (gw - w * dot) / qn
-        g_quats[i, 1] = (gx - x * dot) / qn
-        g_quats[i, 2] = (gy - y * dot) / qn
-        g_quats[i, 3] = (gz - z * dot) / qn
+                gtu[j] = 0.0
+                gtv[j] = 0.0
+            for k in range(3):
+                scale = f if k < 2 else 1.0
+                for j in range(3):
+                    gtu[j] += rot[k, j] * gm[k, 0] * scale
+                    gtv[j] += rot[k, j] * gm[k, 1] * scale
+                    g_means[i, j] += rot[k, j] * gm[k, 2] * scale
+            for j in range(3):
+                gR[j, 0] = gtu[j] * su
+                gR[j, 1] = gtv[j] * sv
+                gR[j, 2] = sign[i] * g_nrm[i, j]
+            g_scales[i, 0] = R[0, 0] * gtu[0] + R[1, 0] * gtu[1] + R[2, 0] * gtu[2]
+            g_scales[i, 1] = R[0, 1] * gtv[0] + R[1, 1] * gtv[1] + R[2, 1] * gtv[2]
+            gw = 2 * (-z * gR[0, 1] + y * gR[0, 2] + z * gR[1, 0] - x * gR[1, 2] - y * gR[2, 0] + x * gR[2, 1])
+            gx = 2 * (y * gR[0, 1] + z * gR[0, 2] + y * gR[1, 0] - 2 * x * gR[1, 1] - w * gR[1, 2] + z * gR[2, 0]
+                      + w * gR[2, 1] - 2 * x * gR[2, 2])
+            gy = 2 * (-2 * y * gR[0, 0] + x * gR[0, 1] + w * gR[0, 2] + x * gR[1, 0] + z * gR[1, 2] - w * gR[2, 0]
+                      + z * gR[2, 1] - 2 * y * gR[2, 2])
+            gz = 2 * (-2 * z * gR[0, 0] - w * gR[0, 1] + x * gR[0, 2] + w * gR[1, 0] - 2 * z * gR[1, 1] + y * gR[1, 2]
+                      + x * gR[2, 0] + y * gR[2, 1])
+            dot = w * gw + x * gx + y * gy + z * gz  # through the normalisation q = q_raw / |q_raw|
+            g_quats[i, 0] = (gw - w * dot) / qn
+            g_quats[i, 1] = (gx - x * dot) / qn
+            g_quats[i, 2] = (gy - y * dot) / qn
+            g_quats[i, 3] = (gz - z * dot) / qn
     return g_means, g_quats, g_scales, g_opac, g_shift
 
 

@@ -24,7 +24,8 @@ CAP = 32  # hit slots per ray in the first pass
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alpha_min, T_min, max_alpha, cap, max_cell):
+def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alpha_min, T_min, max_alpha, cap,
+          max_cell):
     """Per ray up to ``cap`` kept hits (splat ids, alphas) and their count; a count of cap + 1 means the
     ray has more (trace it again with a larger cap)."""
     R = o.shape[0]
