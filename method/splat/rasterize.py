@@ -1,5 +1,8 @@
 """Differentiable 2D Gaussian splat rasterizer (2DGS, Huang et al. 2024), pure PyTorch, CPU and CUDA.
 
+This is the reference path; raster_numba.py computes the same outputs and gradients with compiled CPU
+kernels, chosen by ``backend`` (method.splat.backend: on the CPU by default when numba is installed).
+
 Per splat, M = K [s_u t_u, s_v t_v, mean] (camera frame) maps local (u, v, 1) to homogeneous screen
 coordinates. The pixel (x, y) is the intersection of the planes x w - X = 0 and y w - Y = 0; pulled back
 into the splat frame they are h_u = M0 - x M2 and h_v = M1 - y M2, and the hit is (u, v, 1) ~ h_u x h_v.
