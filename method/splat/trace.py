@@ -374,21 +374,21 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
     if compiled:
         from .trace_numba import march_hits  # numba is optional: imported only when this backend runs
 
-        def march(o, d, tm):
+        def march(o, d, tm):  # (ray, splat): the alphas are recomputed below
             return march_hits(accel, o, d, tm, T_min, max_alpha)
     else:
-        def march(o, d, tm):
+        def march(o, d, tm):  # (ray, splat, alpha)
             return _march(accel, o, d, tm, T_min, max_alpha, steps_per_round)
     with torch.no_grad():  # rays in chunks bound the candidate buffers (memory linear in the chunk)
         parts = [march(origins[i:i + ray_chunk].detach(), dirs[i:i + ray_chunk].detach(), tmin[i:i + ray_chunk])
                  for i in range(0, R, ray_chunk)]
         ray = torch.cat([p[0] + i * ray_chunk for i, p in enumerate(parts)]) if parts else tmin.new_zeros(0).long()
         splat = torch.cat([p[1] for p in parts]) if parts else ray
-        alpha = torch.cat([p[2] for p in parts]) if parts else tmin[:0]
+        alpha = None if compiled else (torch.cat([p[2] for p in parts]) if parts else tmin[:0])
     if compiled or (torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales, opacities))):
         # differentiable recomputation on the composited hits only (rays are treated as constants); the torch
         # traversal computed the same alphas with the same operations, so without gradients they are reused
-        # (the compiled one works in float64: its alphas are recomputed here too, so both paths agree)
+        # (the compiled one works in float64 and returns no alphas: they are computed here)
         q = _gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T,
                          splat)
         oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()

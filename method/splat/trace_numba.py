@@ -26,8 +26,8 @@ CAP = 32  # hit slots per ray in the first pass
 @njit(cache=True, parallel=True, error_model="numpy")
 def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alpha_min, T_min, max_alpha, cap,
           max_cell):
-    """Per ray up to ``cap`` kept hits (splat ids, alphas) and their count; a count of cap + 1 means the
-    ray has more (trace it again with a larger cap)."""
+    """Per ray up to ``cap`` kept hits (splat ids) and their count; a count of cap + 1 means the ray has
+    more (trace it again with a larger cap). The alphas are not returned: trace() recomputes them."""
     R = o.shape[0]
     W = blk_plane.shape[1] // 4
     o_max = 1.0
@@ -35,7 +35,6 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
         o_max = max(o_max, rows[s, 12])
     rho_max = 2.0 * math.log(o_max / alpha_min) + 1e-6  # o exp(-rho / 2) < alpha_min beyond it, any splat
     out_s = np.empty((R, cap), np.int64)  # only the first count[i] slots of a row are written
-    out_a = np.empty((R, cap))
     count = np.zeros(R, np.int64)
     n_blocks = (R + RAY_BLOCK - 1) // RAY_BLOCK
     for b in prange(n_blocks):
@@ -73,6 +72,8 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                 t_max[j] = (nxt - o[i, j]) * iv[j] if abs(d[i, j]) > 1e-30 else math.inf
                 t_delta[j] = abs(cell[j] * iv[j])
             t_cur = t_enter
+            ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+            dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
             trans = 1.0
             n = 0
             stopped = False
@@ -86,8 +87,6 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                 t_out = min(t_next, t_exit)
                 flat = (ci[0] * res[1] + ci[1]) * res[2] + ci[2]
                 m = 0
-                ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
-                dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
                 for blk in range(blk_start[flat], blk_start[flat + 1]):
                     # the block's planes are contiguous (nx[W], ny[W], nz[W], offset[W]): the plane hits of
                     # all W slots in one branch-free loop (vectorised), then the tests
@@ -130,7 +129,6 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                         stopped = True
                         break
                     out_s[i, n] = hs[k]
-                    out_a[i, n] = ha[k]
                     n += 1
                     trans *= 1.0 - ha[k]
                 if trans < T_min:
@@ -141,15 +139,13 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                 if not t_next < t_exit or ci[ax] < 0 or ci[ax] >= res[ax]:
                     stopped = True
             count[i] = n
-    return out_s, out_a, count
-
-
+    return out_s, count
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def compact(out_s, out_a, count, cap, over_row, s2, a2, c2):
-    """Flat (ray, splat, alpha) from the per-ray slots; rays that overflowed (over_row[i] >= 0) take their
-    hits from the second pass (s2, a2, c2)."""
+def compact(out_s, count, over_row, s2, c2):
+    """Flat (ray, splat) from the per-ray slots; rays that overflowed (over_row[i] >= 0) take their hits
+    from the second pass (s2, c2)."""
     R = count.shape[0]
     n = np.empty(R, np.int64)
     for i in range(R):
@@ -160,14 +156,12 @@ def compact(out_s, out_a, count, cap, over_row, s2, a2, c2):
         start[i + 1] = start[i] + n[i]
     ray = np.empty(start[R], np.int64)
     spl = np.empty(start[R], np.int64)
-    alp = np.empty(start[R])
     for i in prange(R):
         k = over_row[i]
         for j in range(n[i]):
             ray[start[i] + j] = i
             spl[start[i] + j] = s2[k, j] if k >= 0 else out_s[i, j]
-            alp[start[i] + j] = a2[k, j] if k >= 0 else out_a[i, j]
-    return ray, spl, alp
+    return ray, spl
 
 
 def _grid(accel):
@@ -184,20 +178,19 @@ def _grid(accel):
 
 
 def march_hits(accel, origins, dirs, tmin, T_min: float, max_alpha: float):
-    """(ray, splat, alpha) of the composited hits, rays in order and each ray's hits front to back."""
+    """(ray, splat) of the composited hits, rays in order and each ray's hits front to back."""
     match_torch_threads()
-    dt = origins.dtype
     o, d, tm = as_f64(origins), as_f64(dirs), as_f64(tmin)
     grid, max_cell = _grid(accel)
     args = (float(accel.alpha_min), float(T_min), float(max_alpha))
-    out_s, out_a, count = march(o, d, tm, *grid, *args, CAP, max_cell)
+    out_s, count = march(o, d, tm, *grid, *args, CAP, max_cell)
     over = np.nonzero(count > CAP)[0]
     over_row = np.full(o.shape[0], -1, np.int64)
     if over.size:  # the stop rule bounds the hits: T_min > (1 - alpha_min)^n
         most = int(math.ceil(math.log(T_min) / math.log1p(-accel.alpha_min))) + 1
-        s2, a2, c2 = march(o[over], d[over], tm[over], *grid, *args, most, max_cell)
+        s2, c2 = march(o[over], d[over], tm[over], *grid, *args, most, max_cell)
         over_row[over] = np.arange(over.size)
     else:
-        s2, a2, c2 = np.zeros((1, 1), np.int64), np.zeros((1, 1)), np.zeros(1, np.int64)
-    ray, spl, alp = compact(out_s, out_a, count, CAP, over_row, s2, a2, c2)
-    return torch.from_numpy(ray), torch.from_numpy(spl), torch.from_numpy(alp).to(dt)
+        s2, c2 = np.zeros((1, 1), np.int64), np.zeros(1, np.int64)
+    ray, spl = compact(out_s, count, over_row, s2, c2)
+    return torch.from_numpy(ray), torch.from_numpy(spl)
