@@ -101,8 +101,9 @@ class LumiMotionAdapter(MethodAdapter):
     def predict(self, scene_dir, train_light, test_lights, seed, profile, out_dir, runs_dir):
         from method.config import load_method_config
         from method.data import available_lights
-        from method.train import checkpoint_paths, train_stage1
-        from method.train2 import train_stage2, write_predictions
+        from method.checkpoints import checkpoint_paths
+        from method.predictions import write_predictions
+        from method.train import train_stage1, train_stage2
 
         profile = profile or "ci"
         cfg = load_method_config(profile, self.overrides(profile))

@@ -101,9 +101,13 @@ def load_method_config(profile: str, overrides: Iterable[str] = (), path: str | 
     if profile in sections and sections[profile]:
         _merge(cfg, sections[profile], f"{source} (profiles.{profile})")
     _merge(cfg, parse_overrides(overrides), "command line")
-    if cfg["stage1"]["iterations"] <= 0:
+    for st in ("stage1", "stage2"):
+        if cfg[st]["iterations"] < 0:
+            raise UserError(f"key '{st}.iterations' must be >= 0 (0: the profile's {st}_iterations), "
+                            f"got {cfg[st]['iterations']}")
+    if cfg["stage1"]["iterations"] == 0:
         cfg["stage1"]["iterations"] = prof.method.stage1_iterations
-    if cfg["stage2"]["iterations"] <= 0:
+    if cfg["stage2"]["iterations"] == 0:
         cfg["stage2"]["iterations"] = prof.method.stage2_iterations
     _validate(cfg)
     cfg["profile"] = profile

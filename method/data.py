@@ -113,6 +113,33 @@ def _dynamic_mask(scene: Path, file_path: str) -> np.ndarray | None:
     return None
 
 
+def _frame_matrix(frame: dict, path: Path, fp: str) -> np.ndarray:
+    """A frame's camera-to-world matrix: 4 x 4 and finite, else a one-line error naming file and frame."""
+    if "transform_matrix" not in frame:
+        raise UserError(f"{path}: frame {fp} has no transform_matrix")
+    try:
+        m = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{path}: frame {fp}: transform_matrix is not a 4 x 4 matrix of numbers ({exc})") from None
+    if m.shape != (4, 4):
+        raise UserError(f"{path}: frame {fp}: transform_matrix has shape {m.shape}, expected 4 x 4")
+    if not np.isfinite(m).all():
+        raise UserError(f"{path}: frame {fp}: transform_matrix has NaN or infinite entries")
+    return m
+
+
+def _frame_time(frame: dict, path: Path, fp: str) -> float:
+    """A frame's time: a number in [0, 1] (the dataset convention), else a one-line error."""
+    if "time" not in frame:
+        raise UserError(f"{path}: frame {fp} has no time (every frame needs a \"time\" in [0, 1])")
+    t = frame["time"]
+    if isinstance(t, bool) or not isinstance(t, (int, float)):
+        raise UserError(f"{path}: frame {fp}: time {t!r} is not a number (expected one in [0, 1])")
+    if not 0.0 <= t <= 1.0:  # NaN fails this too
+        raise UserError(f"{path}: frame {fp}: time {t} is outside [0, 1]")
+    return float(t)
+
+
 def load_views(scene: Path, light: str, split: str, background: np.ndarray, device, with_masks: bool) -> tuple[float, list[View]]:
     path = Path(scene) / f"transforms_{split}.json"
     if not path.is_file():
@@ -123,17 +150,21 @@ def load_views(scene: Path, light: str, split: str, background: np.ndarray, devi
         frames = sorted(raw["frames"], key=lambda f: frame_order(_clean(str(f["file_path"]))))
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise UserError(f"{path}: corrupt transforms file ({type(exc).__name__}: {exc})") from None
+    if not (math.isfinite(angle) and 0.0 < angle < math.pi):
+        raise UserError(f"{path}: camera_angle_x is {angle}, expected a field of view in (0, pi) radians")
     views = []
     for f in frames:
         fp = _clean(str(f["file_path"]))
+        c2w = _frame_matrix(f, path, fp)
+        t = _frame_time(f, path, fp)
         rgb, alpha = read_view_image(Path(scene) / light / f"{fp}.png", background)
         h, w = alpha.shape
         try:
-            cam = Camera.from_blender(angle, np.asarray(f["transform_matrix"], dtype=np.float64), w, h, device=device)
-        except (ValueError, KeyError) as exc:
-            raise UserError(f"{path}: frame {fp}: {exc}") from None
+            cam = Camera.from_blender(angle, c2w, w, h, device=device)
+        except (ValueError, RuntimeError) as exc:  # RuntimeError: torch's singular-matrix error
+            raise UserError(f"{path}: frame {fp}: unusable transform_matrix ({exc})") from None
         mask = _dynamic_mask(scene, fp) if with_masks else None
-        views.append(View(stem=Path(fp).name, file_path=fp, camera=cam, time=float(f.get("time", 0.0)),
+        views.append(View(stem=Path(fp).name, file_path=fp, camera=cam, time=t,
                           rgb=torch.from_numpy(rgb).to(device), alpha=torch.from_numpy(alpha).to(device),
                           dynamic_mask=None if mask is None else torch.from_numpy(mask).to(device)))
     if not views:

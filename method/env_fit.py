@@ -22,7 +22,10 @@ import time
 import torch
 
 from lumibench.color import srgb_to_linear
+from method import buffers
+from method.shading.deferred import accel_for, raster_materials, surface_points, tracer_for
 from method.shading.envmap import cosine_weights, luminance, texel_moments
+from method.shading.visibility import lifted_points
 
 DEFAULT_RATIOS = tuple([0.0] + [10.0 ** (k / 10.0) for k in range(0, 41)])  # 0, then 1 ... 10^4
 LEVEL_QUANTILE = 0.99  # the map's level: irradiance / pi = 1 at this quantile of the fitted points (fit_sun_sky)
@@ -102,7 +105,6 @@ def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, s
 def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[torch.Tensor, dict]:
     """The sun-and-sky map fitted on ``stage2.env_fit_views`` training views x ``env_fit_pixels`` foreground
     pixels each (random, from ``generator``), at the map size of the config; and a record of the fit."""
-    from method.stage2 import SceneTracer, build_accel, lifted_points, raster_materials, surface_points
 
     s2 = cfg["stage2"]
     H, W = s2["env_height"], s2["env_width"]
@@ -122,14 +124,13 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
             continue
         pix = fg[torch.randperm(fg.numel(), generator=generator)[: int(s2["env_fit_pixels"])].to(fg.device)]
         pts, view = surface_points(out, v.camera, pix)
-        n = out.normal.reshape(-1, 3)[pix]
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        n = buffers.unit(out.normal.reshape(-1, 3)[pix])
         pts = lifted_points(pts, n, view, float(s2["normal_offset"]) * scene.extent)  # as shading lifts them
         cw = cosine_weights(n, moments)  # (P, H W)
         pi_, ti = torch.nonzero(cw > 0, as_tuple=True)
         o, dd = pts[pi_], dirs[ti]
-        tracer = SceneTracer(d, build_accel(d, s2["trace_cell"]), s2["trace_offset"] * scene.extent, False,
-                             extent=scene.extent)
+        tracer = tracer_for(d, accel_for(d, s2["trace_cell"]), s2["trace_offset"] * scene.extent, False,
+                            extent=scene.extent)
         T = tracer.visibility(o, dd)
         rays += int(o.shape[0])
         vis = torch.zeros_like(cw)

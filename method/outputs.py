@@ -9,7 +9,9 @@ import torch
 
 from lumibench.io import write_png
 from method.data import SceneData, View
-from method.stage1 import DynamicScene, render
+from method import buffers
+from method.buffers import STAGE1
+from method.model.scene import DynamicScene, render
 
 # static (P < 0.5) blue, dynamic (P > 0.5) orange, the background white
 _STATIC = np.array([0.2, 0.45, 0.9], np.float32)
@@ -19,7 +21,7 @@ _DYNAMIC = np.array([0.95, 0.5, 0.1], np.float32)
 def p_colour(p: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """P (H, W) in [0, 1] as a blue (static) -> orange (dynamic) image over white where alpha is low."""
     col = _STATIC[None, None] * (1 - p[..., None]) + _DYNAMIC[None, None] * p[..., None]
-    return col * alpha[..., None] + (1 - alpha[..., None])
+    return buffers.over_background(col, alpha, 1.0)
 
 
 def depth_colour(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -31,7 +33,7 @@ def depth_colour(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     import matplotlib
 
     col = matplotlib.colormaps["viridis"](1 - x)[..., :3].astype(np.float32)
-    return col * alpha[..., None] + (1 - alpha[..., None])
+    return buffers.over_background(col, alpha, 1.0)
 
 
 @torch.no_grad()
@@ -40,10 +42,9 @@ def render_view(scene: DynamicScene, view: View, background: torch.Tensor) -> di
     d = scene.deform(view.time, p_mode="inference")
     out = render(d, view.camera, background)
     alpha = out.alpha.clamp(0, 1)
-    p = (out.features[..., 3] / alpha.clamp_min(1e-6)).clamp(0, 1)
-    n = out.normal / out.normal.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    return {"rgb": out.features[..., :3].clamp(0, 1).cpu().numpy(), "alpha": alpha.cpu().numpy(),
-            "normal": n.cpu().numpy(), "depth": out.depth_expected.cpu().numpy(),
+    p = buffers.channel(out.features, alpha, STAGE1.p)
+    return {"rgb": out.features[..., STAGE1.colour].clamp(0, 1).cpu().numpy(), "alpha": alpha.cpu().numpy(),
+            "normal": buffers.unit(out.normal).cpu().numpy(), "depth": out.depth_expected.cpu().numpy(),
             "p": torch.where(alpha > 1e-3, p, torch.zeros_like(p)).cpu().numpy()}
 
 
@@ -87,7 +88,7 @@ def write_test_renders(scene: DynamicScene, data: SceneData, out_dir: Path, tag:
         r = render_view(scene, v, data.background)
         renders.append(r)
         a = r["alpha"]
-        nrm = (r["normal"] * 0.5 + 0.5) * a[..., None] + (1 - a[..., None])
+        nrm = buffers.over_background(r["normal"] * 0.5 + 0.5, a, 1.0)
         imgs = {"rgb": r["rgb"], "normal": nrm, "depth": depth_colour(r["depth"], a), "p": p_colour(r["p"], a)}
         for kind, img in imgs.items():
             write_png(out_dir / kind / f"{v.stem}.png", img)
@@ -120,3 +121,27 @@ def _write_sheet(path: Path, sheet: np.ndarray, titles: list[str]) -> None:
     fig.savefig(tmp)
     plt.close(fig)
     tmp.replace(path)
+
+
+def stage1_outputs(scene: DynamicScene, data: SceneData, run_dir: Path) -> dict:
+    """Test renders + sheet, NVS metrics, separation score, P maps; returns the metrics."""
+    from benchmark.metrics import lpips, psnr, ssim
+
+    out: dict = {}
+    renders, sheet = write_test_renders(scene, data, run_dir / "renders" / "stage1", "stage1")
+    if renders:
+        ps, ss, lp = [], [], []
+        for r, v in zip(renders, data.test):
+            gt = v.rgb.cpu().numpy()
+            ps.append(psnr(r["rgb"], gt))
+            ss.append(ssim(r["rgb"], gt))
+            lp.append(lpips(r["rgb"], gt, net="vgg", input_range="[0,1]"))
+        out["test"] = {"psnr": sum(ps) / len(ps), "ssim": sum(ss) / len(ss), "lpips_vgg": sum(lp) / len(lp),
+                       "views": len(ps), "note": "test views under the train light, composited on the background"}
+        out["sheet"] = str(sheet) if sheet else None
+    sep = separation(scene, data) if not scene.static else None
+    if sep is not None:
+        out["separation"] = sep
+    if not scene.static:
+        write_p_maps(scene, data, run_dir / "predictions")
+    return out

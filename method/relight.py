@@ -4,6 +4,7 @@ distance and elevation."""
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -44,42 +45,153 @@ def orbit_cameras(test_cameras: list[Camera], center: torch.Tensor, n: int) -> l
     return cams
 
 
+# what one relight writes into its output folder: a relight into a folder that holds an earlier one removes
+# these first (and nothing else), so a shorter orbit or other test views leave no stale frames beside the new
+OUTPUT_KINDS = {"albedo": (".png", ".npz"), "roughness": (".png",), "normal": (".png",), "relit": (".png",)}
+OUTPUT_FILES = ("envmap_estimated.hdr", "envmap_estimated_clipped.png", "envmap_estimated_scaled.png",
+                "envmap_given_scaled.png", "relit_orbit.gif")
+
+
+def check_device(device: str) -> torch.device:
+    """--device as a torch.device that exists here, else a one-line error (checked before anything loads,
+    so a missing GPU is not reported as an unreadable checkpoint)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise UserError(f"--device {device!r} is not a device name torch knows (use cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise UserError(f"--device {device} asked for, but this torch has no CUDA device (use --device cpu)")
+        n = torch.cuda.device_count()
+        if dev.index is not None and dev.index >= n:
+            raise UserError(f"--device {device} asked for, but this machine has {n} CUDA device(s) "
+                            f"(use cuda:0..cuda:{n - 1} or cpu)")
+    elif dev.type == "mps":
+        if not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+            raise UserError(f"--device {device} asked for, but this torch has no MPS device (use --device cpu)")
+    elif dev.type != "cpu":
+        raise UserError(f"--device {device}: unsupported device type '{dev.type}' (use cpu or cuda)")
+    return dev
+
+
+def resolve_scene_dir(run_dir: Path, ident: dict, profile: str | None, data=None) -> Path:
+    """The run's scene directory: the recorded ``run.scene``, or, given ``data`` (--data), that scene
+    directory itself or <data>/<profile>/<scene_name> (or <data>/<scene_name>) for a moved dataset."""
+    name = str(ident.get("scene_name") or Path(str(ident.get("scene", ""))).name)
+    if data is not None:
+        root = Path(data).expanduser()
+        candidates = [root]
+        if profile:
+            candidates.append(root / str(profile) / name)
+        candidates.append(root / name)
+        for c in candidates:
+            if (c / "transforms_train.json").is_file():
+                return c
+        where = f"{root / str(profile) / name} or " if profile else ""
+        raise UserError(f"--data {root}: neither a scene directory (no transforms_train.json) nor a data root "
+                        f"holding this run's scene ({where}{root / name})")
+    if "scene" not in ident:
+        raise UserError(f"{run_dir / 'config.yaml'} records no scene (run.scene): pass --data <scene dir or data root>")
+    scene = Path(str(ident["scene"]))
+    if not scene.exists():
+        raise UserError(f"the scene this run was trained on is gone: {scene} (recorded in {run_dir / 'config.yaml'}); "
+                        f"if the dataset moved, pass --data <its scene dir or data root>")
+    return scene
+
+
+def prepare_output(out: Path) -> None:
+    """Make sure ``out`` is a folder we can write, before the run loads (one line naming the path if not)."""
+    import tempfile
+
+    if out.exists() and not out.is_dir():
+        raise UserError(f"output {out} is an existing file, not a folder: pass another --out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".tmp-probe-", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise UserError(f"cannot write the relight output to {out}: {exc.strerror or exc} "
+                        f"({exc.filename or out}); pass a writable --out") from None
+
+
+def clear_previous_outputs(out: Path) -> list[Path]:
+    """Remove what an earlier relight wrote into ``out`` (OUTPUT_KINDS images at the top of those folders,
+    OUTPUT_FILES); other files, and anything in subfolders, stay. Returns what was removed."""
+    removed = []
+    for kind, suffixes in OUTPUT_KINDS.items():
+        folder = out / kind
+        if not folder.is_dir():
+            continue
+        for p in sorted(folder.iterdir()):
+            if p.suffix.lower() in suffixes and (p.is_file() or p.is_symlink()):
+                p.unlink()
+                removed.append(p)
+    for name in OUTPUT_FILES:
+        p = out / name
+        if p.is_file() or p.is_symlink():
+            p.unlink()
+            removed.append(p)
+    return removed
+
+
 def relight(run_dir, envmap: str, *, views: str = "test", time: float | None = None, frames: int = 24,
-            dirs: int | None = None, out=None, device: str = "cpu", seed: int = 0) -> Path:
-    from generator.envmap import write_hdr
-    from lumibench.color import linear_to_srgb
+            dirs: int | None = None, out=None, device: str = "cpu", seed: int = 0, data=None) -> Path:
+    """Render the run's test views (or an orbit of ``frames`` cameras) under ``envmap`` into ``out``
+    (default RUN/relight/<envmap name>). An earlier relight's outputs in ``out`` are removed first (see
+    ``clear_previous_outputs``), so the folder holds exactly this relight. ``data``: where the run's scene
+    is now, when the dataset moved since training (a scene directory or a data root)."""
     from method.data import load_scene
     from method.shading.envmap import load_envmap
-    from method.stage2 import display, render_pbr_view
-    from method.train2 import load_trained
+    from method.checkpoints import load_trained
 
     run_dir = Path(run_dir)
     cfg = read_run_config(run_dir)
     ident = cfg.pop("run")
+    if not isinstance(ident, dict):
+        raise UserError(f"{run_dir / 'config.yaml'}: malformed 'run' section")
+    if views not in ("test", "orbit"):
+        raise UserError(f"--views must be test or orbit, got {views!r}")
     if time is not None and not 0.0 <= time <= 1.0:
         raise UserError(f"--time must be in [0, 1], got {time}")
-    dev = torch.device(device)
-    scene_dir = Path(ident["scene"])
-    scene, mats = load_trained(run_dir, cfg, dev)
-    env = load_envmap(envmap, scene_dir if scene_dir.is_dir() else None, height=None, width=None, device=dev)
+    if views == "orbit" and (isinstance(frames, bool) or int(frames) != frames or frames < 1):
+        raise UserError(f"--frames must be a whole number >= 1 (orbit frames), got {frames}")
+    if dirs is not None and (isinstance(dirs, bool) or int(dirs) != dirs or dirs < 1):
+        raise UserError(f"--dirs must be a whole number >= 1 (directions per pixel), got {dirs}")
+    dev = check_device(device)
+    scene_dir = resolve_scene_dir(run_dir, ident, cfg.get("profile"), data)
     name = Path(envmap).stem if ("/" in envmap or envmap.lower().endswith((".hdr", ".exr"))) else envmap
     out = Path(out) if out else run_dir / "relight" / name
-    data = load_scene(scene_dir, ident["light"], cfg["data"]["background"], dev)
+    prepare_output(out)
+    scene, mats = load_trained(run_dir, cfg, dev)
+    env = load_envmap(envmap, scene_dir, height=None, width=None, device=dev)
+    sd = load_scene(scene_dir, ident["light"], cfg["data"]["background"], dev)
     if views == "test":
-        if not data.test:
+        if not sd.test:
             raise UserError(f"{scene_dir} has no test views under {ident['light']}: use --views orbit")
-        cams = [(v.stem, v.camera, v.time if time is None else time) for v in data.test]
+        cams = [(v.stem, v.camera, v.time if time is None else time) for v in sd.test]
     else:
-        src = [v.camera for v in (data.test or data.train)]
+        src = [v.camera for v in (sd.test or sd.train)]
         cams = [(f"orbit_{i:03d}", c, 0.0 if time is None else time)
                 for i, c in enumerate(orbit_cameras(src, scene.center, frames))]
-    gen = torch.Generator().manual_seed(seed)
-    n_dirs = dirs or cfg["stage2"]["dirs_eval"]
-    relit_frames = []
-    from lumibench.progress import track
+    try:
+        clear_previous_outputs(out)
+        _render_and_write(scene, mats, cams, sd, cfg, env, name, out, views, dirs or cfg["stage2"]["dirs_eval"],
+                          torch.Generator().manual_seed(seed))
+    except OSError as exc:
+        raise UserError(f"cannot write the relight output {exc.filename or out}: {exc.strerror or exc}") from None
+    return out
 
+
+def _render_and_write(scene, mats, cams, sd, cfg, env, name, out: Path, views: str, n_dirs: int, gen) -> None:
+    from generator.envmap import write_hdr
+    from lumibench.color import linear_to_srgb
+    from lumibench.progress import track
+    from method.shading.deferred import display, render_pbr_view
+
+    relit_frames = []
     for stem, cam, t in track(cams, description=f"relight {name}", unit="view"):
-        r = render_pbr_view(scene, mats, cam, t, data.background, cfg, {name: env}, n_dirs, gen)
+        r = render_pbr_view(scene, mats, cam, t, sd.background, cfg, {name: env}, n_dirs, gen)
         a = r["alpha"][..., None]
         alb = r["albedo"].cpu().numpy()
         with atomic_path(out / "albedo" / f"{stem}.npz") as tmp:
@@ -87,7 +199,7 @@ def relight(run_dir, envmap: str, *, views: str = "test", time: float | None = N
         write_png(out / "albedo" / f"{stem}.png", (display(r["albedo"]) * a).cpu().numpy())
         write_png(out / "roughness" / f"{stem}.png", (r["roughness"][..., None] * a).cpu().numpy())
         write_png(out / "normal" / f"{stem}.png", ((r["normal"] * 0.5 + 0.5) * a).cpu().numpy())
-        relit = (display(r[f"relit:{name}"]) * a + data.background * (1 - a)).cpu().numpy()
+        relit = (display(r[f"relit:{name}"]) * a + sd.background * (1 - a)).cpu().numpy()
         write_png(out / "relit" / f"{stem}.png", relit)
         relit_frames.append(relit)
     est = mats.env().detach().cpu().numpy()
@@ -102,4 +214,3 @@ def relight(run_dir, envmap: str, *, views: str = "test", time: float | None = N
         with atomic_path(gif) as tmp:
             imageio.mimsave(tmp, [(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in relit_frames],
                             format="GIF", duration=0.08, loop=0)
-    return out

@@ -19,8 +19,8 @@ import torch
 def score(run_dir: Path, iteration: int | None = None, colour: bool = False, protocol: str = "lumimotion") -> dict:
     from lumibench.errors import UserError
     from method.relight import read_run_config
-    from method.stage2 import Materials
-    from method.train import checkpoint_paths, load_checkpoint, scene_from_checkpoint
+    from method.checkpoints import checkpoint_paths, load_checkpoint, scene_from_checkpoint
+    from method.model.materials import Materials
 
     run_dir = Path(run_dir)
     cfg = read_run_config(run_dir)
@@ -48,7 +48,7 @@ def _score(scene, mats, scene_dir: Path, cfg: dict, it: int, protocol: str) -> d
     from lumibench.groundtruth import read_gt
     from lumibench.predictions import srgb_decode, srgb_encode
     from method.data import load_scene
-    from method.stage2 import display, render_pbr_view
+    from method.shading.deferred import display, render_pbr_view
 
     proto = get_protocol(protocol)
     light = cfg["run"]["light"]

@@ -1,101 +1,25 @@
-"""Stage 1: the dynamic 2D Gaussian model rendered at a time, and its loss (paper section "Stage 1").
-
-``DynamicScene`` bundles the canonical Gaussians, the deformation network (None for the static
-pipeline), and the scene box that normalises positions for the network's encoding.
-"""
+"""Stage 1: the dynamic 2D Gaussian model rendered at a time, its loss, its mechanisms (the P split by
+motion, the coarse-to-fine and time-window curricula, density control) and ``Stage1``, the object the
+training loop (method/train.py) runs (paper section "Stage 1")."""
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
 from method import losses
-from method.model.deform import DeformNet, binary_concrete
-from method.model.gaussians import Gaussians
+from method.buffers import STAGE1
+from method.checkpoints import build_net, scene_from_checkpoint, scene_state
+from method.data import SceneData
+from method.model.density import DensityStats, densify_and_prune, reset_opacity
+from method.model.gaussians import GaussianAdam, Gaussians
+from method.model.scene import Deformed, DynamicScene, render
+from method.outputs import stage1_outputs
+from method.schedules import expon_lr
 from method.splat.camera import Camera
-from method.splat.rasterize import RasterOutput, rasterize
-
-
-@dataclass
-class Deformed:
-    """The Gaussians at one time: what the rasterizer and the tracer consume, plus the deltas."""
-
-    means: torch.Tensor
-    quats: torch.Tensor
-    scales: torch.Tensor
-    opacities: torch.Tensor
-    colours: torch.Tensor
-    p: torch.Tensor          # the P used (sampled in training, u = 0.5 at inference; ones in warm-up)
-    d_mu: torch.Tensor
-    d_col: torch.Tensor
-
-
-class DynamicScene:
-    def __init__(self, gaussians: Gaussians, net: DeformNet | None, center: torch.Tensor, extent: float,
-                 temperature: float = 0.5, delta_colour: bool = True, separation: bool = True):
-        self.g = gaussians
-        self.net = net
-        self.center = center
-        self.extent = float(extent)
-        self.temperature = float(temperature)
-        self.delta_colour = bool(delta_colour)  # False: the wo_dc ablation
-        self.separation = bool(separation)      # False: the wo_P ablation (P = 1 always)
-        self.model_cfg: dict = {}                # the config's model section, saved in checkpoints
-
-    @property
-    def static(self) -> bool:
-        return self.net is None
-
-    def p_inference(self) -> torch.Tensor:
-        return binary_concrete(self.g.t["p_logit"], self.temperature, training=False)
-
-    def deform(self, t: float, *, p_mode: str = "inference", generator: torch.Generator | None = None,
-               fixed_p: float | None = None, trunk_cache: dict | None = None) -> Deformed:
-        """Gaussians at time ``t``. ``p_mode``: "sample" (training), "inference" (u = 0.5), "ones" (warm-up).
-
-        ``trunk_cache`` (stage 2, where the canonical means, the network's trunk and its motion heads are
-        frozen): the trunk's features and the motion per time are computed once and kept there; only the
-        colour head runs each call. The same values as without it (the same operations, once)."""
-        g = self.g
-        means, quats, colours = g.means, g.quats, g.colours
-        n = len(g)
-        if self.net is None:
-            zero = means.new_zeros(n, 3)
-            return Deformed(means, quats, g.scales, g.opacities, colours, means.new_zeros(n), zero, zero)
-        if fixed_p is not None:
-            p = means.new_full((n,), float(fixed_p))
-        elif not self.separation:
-            p = means.new_ones(n)
-        elif p_mode == "sample":
-            p = binary_concrete(g.t["p_logit"], self.temperature, generator, training=True)
-        elif p_mode == "ones":
-            p = means.new_ones(n)
-        else:
-            p = self.p_inference()
-        x = (means - self.center.to(means)) / self.extent
-        if trunk_cache is None:
-            d_mu, d_rot, d_col = self.net(x, t)
-        else:
-            trainable = [n for n, q in self.net.named_parameters() if q.requires_grad and not n.startswith("d_col.")]
-            if means.requires_grad or trainable:
-                raise ValueError("trunk_cache needs frozen means, trunk and motion heads "
-                                 f"(trainable: {', '.join(trainable + (['means'] if means.requires_grad else []))})")
-            key = float(t)
-            if key not in trunk_cache:
-                with torch.no_grad():
-                    h = self.net.trunk(x, t)
-                    trunk_cache[key] = (h, self.net.d_mu(h), self.net.d_rot(h))
-            h, d_mu, d_rot = trunk_cache[key]
-            d_col = torch.clamp_max(self.net.d_col(h), 1.0)
-        if not self.delta_colour:
-            d_col = torch.zeros_like(d_col)
-        pc = p[:, None]
-        return Deformed(means + pc * d_mu, quats + pc * d_rot, g.scales, g.opacities, colours * (1.0 - d_col),
-                        p, d_mu, d_col)
-
-    def num_parameters(self) -> int:
-        return self.g.num_parameters() + (self.net.num_parameters() if self.net is not None else 0)
+from method.splat.rasterize import RasterOutput
 
 
 def otsu_threshold(values: torch.Tensor) -> float:
@@ -177,20 +101,11 @@ def assign_p_from_motion(scene: DynamicScene, times: list[float], threshold: flo
             "motion_static_median": med(static), "motion_dynamic_median": med(~static)}
 
 
-def render(d: Deformed, camera: Camera, background: torch.Tensor, screen_offsets: torch.Tensor | None = None,
-           extra: torch.Tensor | None = None) -> RasterOutput:
-    """Rasterize colour and P (channel 3) plus optional extra features; the background fills colour only."""
-    feats = [d.colours, d.p[:, None]] + ([extra] if extra is not None else [])
-    f = torch.cat(feats, 1)
-    bg = torch.cat([background.to(f), f.new_zeros(f.shape[1] - 3)])
-    return rasterize(d.means, d.quats, d.scales, d.opacities, f, camera, bg, screen_offsets=screen_offsets)
-
-
 def stage1_loss(out: RasterOutput, d: Deformed, rgb_gt: torch.Tensor, alpha_gt: torch.Tensor, cfg: dict,
                 iteration: int, warmup: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The weighted sum of the stage-1 terms and each term (unweighted) for the log."""
     s = cfg
-    img = out.features[..., :3]
+    img = out.features[..., STAGE1.colour]
     lc, l1 = losses.colour_loss(img, rgb_gt, s["lambda_dssim"])
     terms = {"l_c": lc, "l1": l1}
     total = lc
@@ -214,3 +129,302 @@ def stage1_loss(out: RasterOutput, d: Deformed, rgb_gt: torch.Tensor, alpha_gt: 
             terms["dmu"] = losses.mean_sq_norm(d.d_mu)
             total = total + s["lambda_dmu"] * terms["dmu"]
     return total, terms
+
+
+# ------------------------------------------------------------------ set-up, curricula, outputs
+
+def mlp_lr(iteration: int, total: int, s1: dict) -> float:
+    """The deformation network's rate: exponential decay from ``lr_mlp`` to ``lr_mlp * lr_mlp_final``, on the
+    base ``lr_mlp_warmup`` instead during the P = 1 warm-up when that is set (> 0): a slow warm-up keeps the
+    static Gaussians' wobble small for the split by motion, a faster rate afterwards lets the dynamic ones
+    catch fast motion (BENCHMARKS.md, session 11)."""
+    base = s1["lr_mlp"]
+    if s1["lr_mlp_warmup"] > 0 and iteration <= s1["warmup"]:
+        base = s1["lr_mlp_warmup"]
+    return expon_lr(iteration, total, base, base * s1["lr_mlp_final"])
+
+
+
+def carve(points: torch.Tensor, data: SceneData, fraction: float = 0.5) -> torch.Tensor:
+    """Keep points that fall inside the foreground (alpha > 0.5) of at least ``fraction`` of the training
+    views that see them (a visual hull; moving objects blur it, density control does the rest)."""
+    inside = torch.zeros(points.shape[0])
+    seen = torch.zeros(points.shape[0])
+    for v in data.train:
+        cam = v.camera
+        p = points.to(cam.w2c) @ cam.w2c[:3, :3].T + cam.w2c[:3, 3]
+        z = p[:, 2]
+        x = cam.focal * p[:, 0] / z.clamp_min(1e-6) + cam.cx
+        y = cam.focal * p[:, 1] / z.clamp_min(1e-6) + cam.cy
+        ok = (z > 1e-3) & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+        xi = x.clamp(0, cam.width - 1).long()
+        yi = y.clamp(0, cam.height - 1).long()
+        a = v.alpha[yi.to(v.alpha.device), xi.to(v.alpha.device)].cpu()
+        seen += ok.cpu().float()
+        inside += (ok.cpu() & (a > 0.5)).float()
+    return (seen > 0) & (inside >= fraction * seen.clamp_min(1))
+
+
+def c2f_factor(iteration: int, levels: int, until: int) -> int:
+    """Image downscale factor at ``iteration`` of a coarse-to-fine schedule: 2^levels at the start, halving
+    at evenly spaced iterations, 1 (full resolution) after ``until``; 1 throughout when either is 0.
+
+    Why: the balls of `spheres` move by many pixels between frames, and a splat only receives gradient
+    from pixels it covers; on a coarse image the same motion is a few pixels and a splat covers more of
+    the object (the classic coarse-to-fine answer to large displacements), and a coarse step is cheaper."""
+    if levels <= 0 or until <= 0 or iteration > until:
+        return 1
+    return 2 ** (levels - (max(iteration, 1) - 1) * levels // until)
+
+
+def time_window_views(times: list[float], iteration: int, start: float, until: int,
+                      front: bool = False) -> list[int]:
+    """Indices of the training views a time-window curriculum may draw at ``iteration``: those whose time
+    lies in the first ``start`` of the time range at iteration 1, the window growing linearly to the whole
+    range at ``until``; every view when ``until`` is 0 or passed.
+
+    Why: with one view per time, a Gaussian on a fast object at one time sits elsewhere at the others, so
+    it only survives if the deformation already carries it along. Opening the times in order lets the
+    network follow the object from a time it has fitted to the next, a small step, instead of having to
+    find every position at once (spheres' small bouncing ball).
+
+    ``front``: only the window's newest ``start`` share of the range (the times just opened), so that a
+    caller can give them more draws than their share of a wide window."""
+    if until <= 0 or iteration >= until:
+        return list(range(len(times)))
+    lo, hi = min(times), max(times)
+    frac = start + (1.0 - start) * max(iteration - 1, 0) / until
+    limit = lo + frac * (hi - lo)
+    order = sorted(range(len(times)), key=lambda k: times[k])
+    window = [k for k in order if times[k] <= limit + 1e-9]
+    chosen = [k for k in window if times[k] >= limit - start * (hi - lo) - 1e-9] if front else window
+    return chosen or window[-1:] or order[:1]
+
+
+def downsampled(view, factor: int):
+    """The view at 1/factor resolution: area-averaged image and alpha, the same camera with its focal
+    length and size divided (pixel centres stay consistent since cx = width / 2)."""
+    if factor == 1:
+        return view
+    cam = view.camera
+    if cam.width % factor or cam.height % factor:
+        return view
+    pool = torch.nn.functional.avg_pool2d
+    rgb = pool(view.rgb.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0).contiguous()
+    alpha = pool(view.alpha[None, None], factor)[0, 0]
+    small = Camera(cam.width // factor, cam.height // factor, cam.focal / factor, cam.w2c, cam.c2w)
+    return dataclasses.replace(view, camera=small, rgb=rgb, alpha=alpha, dynamic_mask=None)
+
+
+def init_points(data: SceneData, cfg: dict, gen: torch.Generator) -> torch.Tensor:
+    s = cfg["stage1"]
+    n = s["init_points"]
+    c, e = data.center.cpu(), data.extent
+    if not s["init_carve"]:
+        return c + (torch.rand(n, 3, generator=gen) * 2 - 1) * e
+    kept, tries = [], 0
+    total = 0
+    while total < n and tries < 20:
+        cand = c + (torch.rand(4 * n, 3, generator=gen) * 2 - 1) * e
+        k = cand[carve(cand, data)]
+        kept.append(k)
+        total += k.shape[0]
+        tries += 1
+    pts = torch.cat(kept)[:n] if total else c + (torch.rand(n, 3, generator=gen) * 2 - 1) * e
+    return pts
+
+
+def build_scene(data: SceneData, cfg: dict, static: bool, gen: torch.Generator, device: torch.device) -> DynamicScene:
+    m = cfg["model"]
+    pts = init_points(data, cfg, gen)
+    g = Gaussians.from_points(pts, cfg["stage1"]["init_opacity"], m["p_init_logit"], gen,
+                              scale_factor=cfg["stage1"]["init_scale"]).to(device)
+    net = None if static else build_net(m).to(device)
+    scene = DynamicScene(g, net, data.center.to(device), data.extent, m["p_temperature"], m["delta_colour"],
+                         m["separation"])
+    scene.model_cfg = dict(m)
+    return scene
+
+
+def make_optimisers(scene: DynamicScene, cfg: dict) -> tuple[GaussianAdam, torch.optim.Optimizer | None]:
+    s = cfg["stage1"]
+    lrs = {"means": s["lr_position"] * scene.extent, "quats": s["lr_rotation"], "log_scales": s["lr_scaling"],
+           "opacity_logit": s["lr_opacity"], "colour_logit": s["lr_colour"], "p_logit": s["lr_p"]}
+    gopt = GaussianAdam(scene.g, lrs)
+    nopt = torch.optim.Adam(scene.net.parameters(), lr=s["lr_mlp"], eps=1e-15) if scene.net is not None else None
+    return gopt, nopt
+
+
+
+def evaluate_test(scene: DynamicScene, data: SceneData) -> float | None:
+    """Mean PSNR of the test views (inference P, at each view's time), for the log and the bar."""
+    if not data.test:
+        return None
+    vals = []
+    with torch.no_grad():
+        for v in data.test:
+            out = render(scene.deform(v.time, p_mode="inference"), v.camera, data.background)
+            vals.append(losses.psnr(out.features[..., STAGE1.colour].clamp(0, 1), v.rgb))
+    return float(sum(vals) / len(vals))
+
+
+
+class Stage1:
+    """What stage 1 optimises and how one step goes, for the training loop (method/train.py).
+
+    Optimises the canonical Gaussians (GaussianAdam) and the deformation network (Adam); each step draws
+    a training view (from the time window while that curriculum runs, at the coarse-to-fine level of the
+    iteration), renders the Gaussians at its time with P sampled (P = 1 in the warm-up), and takes the
+    stage-1 loss. After the step: density control. At the warm-up's end: the P split by motion."""
+
+    number = 1
+    generator_offset = 0  # the stage's generator is seeded with seed + this
+    forward_lap = "loss"  # the timer's name for the end of the forward
+
+    def __init__(self, data: SceneData, cfg: dict, *, static: bool, device: torch.device):
+        self.data, self.cfg, self.s = data, cfg, cfg["stage1"]
+        self.static, self.device = bool(static), device
+        self.scene: DynamicScene | None = None
+        self.gopt: GaussianAdam | None = None
+        self.nopt: torch.optim.Optimizer | None = None
+        self.stats: DensityStats | None = None
+        self.prior_seconds = 0.0
+        self.view_times = [float(v.time) for v in data.train]
+        self.train_times = sorted(set(self.view_times))
+        self._coarse: dict = {}  # (view, factor) -> the downsampled view of the coarse-to-fine schedule
+        self._step: dict = {}    # what the current step's forward left for after_step and the log
+
+    # -- set-up and checkpoints
+    def start(self, gen: torch.Generator, log) -> None:
+        self.scene = build_scene(self.data, self.cfg, self.static, gen, self.device)
+        self.gopt, self.nopt = make_optimisers(self.scene, self.cfg)
+        self.stats = DensityStats(len(self.scene.g), self.device)
+        if self.s["eval_every"]:
+            first = evaluate_test(self.scene, self.data)  # the baseline the learning curve starts from
+            if first is not None:
+                log({"iteration": 0, "test_psnr": first, "gaussians": len(self.scene.g)})
+
+    def resume(self, ck: dict) -> None:
+        self.scene = scene_from_checkpoint(ck, self.cfg, self.device)
+        self.gopt, self.nopt = make_optimisers(self.scene, self.cfg)
+        self.gopt.load_state_dict(ck["gopt"])
+        if self.nopt is not None:
+            self.nopt.load_state_dict(ck["nopt"])
+        self.stats = DensityStats(len(self.scene.g), self.device)
+        self.stats.load(ck["density"])
+
+    def state(self) -> dict:
+        return {**scene_state(self.scene), "gopt": self.gopt.state_dict(),
+                "nopt": None if self.nopt is None else self.nopt.state_dict(), "density": self.stats.state(),
+                "static": self.scene.static}
+
+    # -- one step
+    def _view(self, it: int, gen: torch.Generator):
+        s = self.s
+        if s["time_window_until"] and it < s["time_window_until"]:
+            front = s["time_window_front"] > 0 and float(torch.rand(1, generator=gen)) < s["time_window_front"]
+            pool = time_window_views(self.view_times, it, s["time_window_start"], s["time_window_until"], front)
+            k = pool[int(torch.randint(len(pool), (1,), generator=gen))]
+        else:
+            k = int(torch.randint(len(self.data.train), (1,), generator=gen))
+        factor = c2f_factor(it, s["c2f_levels"], s["c2f_until"])
+        if factor == 1:
+            return self.data.train[k]
+        if (k, factor) not in self._coarse:
+            self._coarse[(k, factor)] = downsampled(self.data.train[k], factor)
+        return self._coarse[(k, factor)]
+
+    def forward(self, it: int, total: int, gen: torch.Generator, timer, log):
+        s, scene = self.s, self.scene
+        self.gopt.set_lr("means", expon_lr(it, total, s["lr_position"] * scene.extent,
+                                           s["lr_position"] * scene.extent * s["lr_position_final"]))
+        if self.nopt is not None:
+            for grp in self.nopt.param_groups:
+                grp["lr"] = mlp_lr(it, total, s)
+        view = self._view(it, gen)
+        if s["p_from_motion"] and it == s["warmup"] + 1 and not scene.static and scene.separation:
+            info = assign_p_from_motion(scene, self.train_times, s["p_motion_threshold"] or None,
+                                        s["p_from_motion_logit"], s["p_motion_relative"])
+            self.gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())
+            log({"iteration": it, "p_from_motion": info})
+        warm = it <= s["warmup"]
+        d = scene.deform(view.time, p_mode="ones" if warm else "sample", generator=gen)
+        timer.lap("deform")
+        densify_now = s["densify_from"] <= it <= s["densify_until"]
+        offsets = torch.zeros(len(scene.g), 2, device=self.device, requires_grad=True) if densify_now else None
+        out = render(d, view.camera, self.data.background, screen_offsets=offsets)
+        timer.lap("rasterize")
+        loss, terms = stage1_loss(out, d, view.rgb, view.alpha, s, it, warm)
+        self._step = {"view": view, "out": out, "offsets": offsets, "densify": densify_now}
+        return loss, terms
+
+    def guarded(self) -> list[tuple[str, list[torch.Tensor]]]:
+        """(name, tensors) whose gradients and values the loop's NaN guard checks."""
+        out = [(name, [t]) for name, t in self.scene.g.t.items()]
+        if self.scene.net is not None:
+            out.append(("the deformation network", list(self.scene.net.parameters())))
+        return out
+
+    def zero_grad(self) -> None:
+        self.gopt.zero_grad()
+        if self.nopt is not None:
+            self.nopt.zero_grad(set_to_none=True)
+
+    def optimiser_step(self, it: int, total: int) -> None:
+        self.gopt.step()
+        if self.nopt is not None:
+            self.nopt.step()
+
+    def after_step(self, it: int, gen: torch.Generator, timer) -> None:
+        """Density control: gradient statistics in its window, clone/split/prune every densify_every."""
+        s, st = self.s, self._step
+        if st["densify"]:
+            cam = st["view"].camera
+            self.stats.add(st["offsets"].grad, st["out"].visible, st["out"].radii, cam.width, cam.height)
+            if it % s["densify_every"] == 0 and it < s["densify_until"]:
+                densify_and_prune(self.scene.g, self.gopt, self.stats, grad_threshold=s["densify_grad_threshold"],
+                                  percent_dense=s["percent_dense"], extent=self.scene.extent,
+                                  min_opacity=s["prune_opacity"], max_gaussians=s["max_gaussians"],
+                                  max_screen_radius=large_splat_limit(it, cam, s), generator=gen)
+            if s["opacity_reset_every"] and it % s["opacity_reset_every"] == 0:
+                reset_opacity(self.scene.g, self.gopt)
+        timer.lap("density")
+
+    # -- progress and results
+    def log_fields(self, it: int, total: int) -> dict:
+        st, scene = self._step, self.scene
+        rec = {"train_psnr": losses.psnr(st["out"].features[..., STAGE1.colour].detach().clamp(0, 1), st["view"].rgb),
+               "gaussians": len(scene.g)}
+        if not scene.static:  # how far the separation has gone: share of Gaussians with P > 0.5
+            rec["p_dynamic_share"] = float((scene.p_inference().detach() > 0.5).float().mean())
+        if self.s["eval_every"] and (it % self.s["eval_every"] == 0 or it == total):
+            rec["test_psnr"] = self.last_test_psnr = evaluate_test(scene, self.data)
+        return rec
+
+    last_test_psnr: float | None = None
+
+    def describe(self) -> str:
+        p = self.last_test_psnr
+        return (f"  test PSNR {p:.2f}" if p else "") + f"  N {len(self.scene.g)}"
+
+    def timing_fields(self) -> dict:
+        return {}
+
+    def finish(self, run_dir: Path, seconds: float, write_outputs: bool, gen: torch.Generator) -> dict:
+        scene = self.scene
+        metrics = {"iterations": self.s["iterations"], "gaussians": len(scene.g), "parameters": scene.num_parameters(),
+                   "gaussian_parameters": scene.g.num_parameters(),
+                   "network_parameters": 0 if scene.net is None else scene.net.num_parameters(),
+                   "static": scene.static, "seconds": seconds}
+        if write_outputs:
+            metrics.update(stage1_outputs(scene, self.data, run_dir))
+        return metrics
+
+
+def large_splat_limit(it: int, camera: Camera, s: dict) -> float | None:
+    """The screen radius above which density control prunes a splat (3DGS: 20 px at 800 px), applied once
+    the first opacity reset has happened, as in 3DGS; None (no such pruning) before it or without resets."""
+    every = s["opacity_reset_every"]
+    if not every or it <= every:
+        return None
+    return 20.0 * max(camera.height, camera.width) / 800.0

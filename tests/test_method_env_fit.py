@@ -100,8 +100,8 @@ def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path):
 
     from method.__main__ import main
     from method.config import load_method_config
-    from method.train import checkpoint_paths, load_checkpoint
-    from method.train2 import train_stage2
+    from method.checkpoints import checkpoint_paths, load_checkpoint
+    from method.train import train_stage2
     from tests.test_method_relight import TINY
 
     src = tmp_path / "src"
@@ -144,7 +144,8 @@ def test_normal_offset_removes_self_shadowing_of_a_floor_under_a_low_sun():
     floor shades as it does with no visibility at all (nothing above it blocks the sky)."""
     from method.config import load_method_config
     from method.splat.camera import Camera
-    from method.stage2 import Materials, render_pbr_view
+    from method.model.materials import Materials
+    from method.shading.deferred import render_pbr_view
 
     scene = _floor_scene(0.01)
     env = torch.full((H, W, 3), 0.2)
@@ -160,7 +161,7 @@ def test_normal_offset_removes_self_shadowing_of_a_floor_under_a_low_sun():
         means[lift] = float(r["relit:sun"][fg].mean())
     cfg = load_method_config("ci", ["stage2.normal_offset=0.0"])
     from method.shading.render import shade
-    from method.stage2 import raster_materials, surface_points
+    from method.shading.deferred import raster_materials, surface_points
 
     d = scene.deform(0.0)
     out = raster_materials(d, Materials.init_from(scene, cfg), cam, torch.zeros(3))
@@ -184,7 +185,7 @@ def test_the_fit_traces_from_lifted_points_as_shading_does(monkeypatch):
     import method.env_fit as env_fit
     from method.config import load_method_config
     from method.splat.camera import Camera
-    from method.stage2 import Materials
+    from method.model.materials import Materials
 
     scene = _floor_scene(0.01)
     cam = Camera.look_at(torch.tensor([0.0, -1.2, 2.0]), torch.zeros(3), 32, 32)

@@ -119,7 +119,7 @@ def test_stage2_step_with_the_decorrelated_loss(ci_dataset, tiny_run):
     from method.config import load_method_config
     from method.data import load_scene
     from method.stage2 import stage2_step_loss
-    from method.train2 import load_trained
+    from method.checkpoints import load_trained
 
     cfg = load_method_config("ci", TINY + ["stage2.pbr_loss=l2_decorrelated"])
     scene, mats = load_trained(tiny_run, cfg, "cpu")
@@ -139,8 +139,8 @@ def test_stage2_records_its_own_settings_in_the_run_config(ci_dataset, tiny_run,
     import yaml
 
     from method.config import load_method_config
-    from method.train import checkpoint_paths
-    from method.train2 import train_stage2
+    from method.checkpoints import checkpoint_paths
+    from method.train import train_stage2
 
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
@@ -176,8 +176,8 @@ def test_stage2_material_rates_decay_to_the_final_factor(ci_dataset, tiny_run, t
     from lumibench.errors import UserError
     from method.config import load_method_config
     from method.stage2 import material_lr_scale
-    from method.train import checkpoint_paths, load_checkpoint
-    from method.train2 import train_stage2
+    from method.checkpoints import checkpoint_paths, load_checkpoint
+    from method.train import train_stage2
 
     assert material_lr_scale(0, 8, 0.01) == 1.0 and material_lr_scale(8, 8, 0.01) == pytest.approx(0.01)
     assert material_lr_scale(4, 8, 0.01) == pytest.approx(0.1)  # exponential: the geometric midpoint

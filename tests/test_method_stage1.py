@@ -314,7 +314,8 @@ def _cfg(extra=()):
 @pytest.mark.parametrize("backend", ["numba", "torch"])
 def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path, monkeypatch, backend):
     import method.splat.backend as backend_mod
-    from method.train import checkpoint_paths, load_checkpoint, train_stage1
+    from method.checkpoints import checkpoint_paths, load_checkpoint
+    from method.train import train_stage1
 
     if backend == "numba" and not backend_mod.numba_available():
         pytest.skip("numba is not installed")
@@ -348,7 +349,8 @@ def test_p_from_motion_runs_at_the_warmup_end_and_resumes_across_it(ci_dataset, 
     """stage1.p_from_motion splits P (Otsu) at iteration warmup + 1 (logged, logits at +-p_from_motion_logit
     moved by at most two Adam steps), and a run resumed from the warm-up's last checkpoint equals the
     uninterrupted one."""
-    from method.train import checkpoint_paths, load_checkpoint, train_stage1
+    from method.checkpoints import checkpoint_paths, load_checkpoint
+    from method.train import train_stage1
 
     torch.set_num_threads(1)
     extra = ["stage1.iterations=8", "stage1.checkpoint_every=6", "stage1.p_from_motion=true",
@@ -379,7 +381,10 @@ def test_p_from_motion_runs_at_the_warmup_end_and_resumes_across_it(ci_dataset, 
 def test_network_rate_in_and_after_the_warmup(ci_dataset, tmp_path):
     """stage1.lr_mlp_warmup: the network's rate follows the same exponential decay on that base until the
     warm-up's last iteration, on lr_mlp after it; 0 keeps lr_mlp throughout."""
-    from method.train import checkpoint_paths, expon_lr, load_checkpoint, mlp_lr, train_stage1
+    from method.checkpoints import checkpoint_paths, load_checkpoint
+    from method.schedules import expon_lr
+    from method.stage1 import mlp_lr
+    from method.train import train_stage1
 
     s1 = {"lr_mlp": 4e-3, "lr_mlp_final": 0.1, "lr_mlp_warmup": 1e-3, "warmup": 6}
     assert mlp_lr(6, 8, s1) == pytest.approx(expon_lr(6, 8, 1e-3, 1e-4))
@@ -441,7 +446,7 @@ def test_bad_input_is_one_line_exit_2(ci_dataset, tmp_path, capsys, argv, needle
 def test_coarse_to_fine_schedule_and_downsampled_views(ci_dataset):
     from method.data import load_scene
     from method.splat.rasterize import rasterize
-    from method.train import c2f_factor, downsampled
+    from method.stage1 import c2f_factor, downsampled
 
     # 2 levels reaching full resolution after 600: 1/4 for 1..300, 1/2 for 301..600, then full
     assert [c2f_factor(i, 2, 600) for i in (1, 300, 301, 600, 601, 5000)] == [4, 4, 2, 2, 1, 1]
@@ -471,7 +476,8 @@ def test_coarse_to_fine_schedule_and_downsampled_views(ci_dataset):
 def test_time_window_curriculum_opens_the_times_in_order(ci_dataset, tmp_path, monkeypatch):
     """stage1.time_window_until: before that iteration a view is drawn only from the times in the window
     (start share of the range at iteration 1, growing linearly), after it from every view."""
-    from method.train import time_window_views, train_stage1
+    from method.stage1 import time_window_views
+    from method.train import train_stage1
 
     times = [0.5, 0.0, 1.0, 0.25, 0.75]
     assert time_window_views(times, 1, 0.3, 100) == [1, 3]  # window [0, 0.3]
@@ -570,8 +576,9 @@ def test_ci_run_of_spheres_learns(ci_dataset, tmp_path):
     # test (tests/test_shading.py); at ci the estimated map has too little directional structure for it to
     # show here (turned by 180 degrees about +Z it gave 24.78 dB against 24.84), which is also checked, so
     # that a stage 2 that starts recovering the sun's direction is noticed
-    from method.stage2 import display, render_pbr_view
-    from method.train2 import load_trained, train_stage2
+    from method.shading.deferred import display, render_pbr_view
+    from method.checkpoints import load_trained
+    from method.train import train_stage2
 
     cfg = load_method_config("ci")
     m2 = train_stage2(ci_dataset, "city", run, cfg, seed=0, progress=False)

@@ -18,7 +18,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=24, help="orbit frames (default 24)")
     p.add_argument("--dirs", type=int, default=None, help="directions per pixel (default the profile's dirs_eval)")
     p.add_argument("--out", default=None, help="output folder (default RUN/relight/<envmap name>)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--data", default=None, metavar="DIR",
+                   help="where the run's scene is now, if the dataset moved since training: the scene directory "
+                        "itself or a data root holding <profile>/<scene> (default: the path in RUN/config.yaml)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--splat-backend", default=None, choices=["auto", "torch", "numba"],
                    help="rasterizer/tracer implementation (default auto: compiled CPU kernels when available)")
     p.add_argument("--seed", type=int, default=0)
@@ -30,6 +33,6 @@ def run(args: argparse.Namespace) -> int:
 
     set_splat_backend(args.splat_backend)
     out = relight(args.run, args.envmap, views=args.views, time=args.time, frames=args.frames, dirs=args.dirs,
-                  out=args.out, device=args.device, seed=args.seed)
+                  out=args.out, device=args.device, seed=args.seed, data=args.data)
     print(f"relit: {out}")
     return 0

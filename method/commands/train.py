@@ -27,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--static", action="store_true", help="no deformation network (the static pipeline)")
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="configuration overrides, e.g. stage1.iterations=500")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="configuration overrides, e.g. stage1.iterations=500 "
+                   "(iterations=0 means the profile's number; negative numbers are refused)")
 
 
 def resolve_scene(data: str, profile: str, scene: str) -> Path:
@@ -56,20 +57,22 @@ def set_splat_backend(name: str | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lumibench.errors import UserError
+    from method.checkpoints import checkpoint_paths
     from method.config import load_method_config
-    from method.train import default_run_dir, train_stage1
+    from method.predictions import write_predictions
+    from method.train import check_device, default_run_dir, train_stage1, train_stage2
 
-    if args.device not in ("cpu", "cuda") and not str(args.device).startswith("cuda:"):
-        raise UserError(f"--device must be cpu or cuda, got {args.device!r}")
+    check_device(args.device)
     set_splat_backend(args.splat_backend)
     cfg = load_method_config(args.profile, args.overrides)
     scene_dir = resolve_scene(args.data, args.profile, args.scene)
     name = args.name or ("static" if args.static else "lumimotion")
     run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(args.runs, args.profile, name, scene_dir.name,
                                                                        args.light, args.seed)
-    from method.train import checkpoint_paths
-    from method.train2 import train_stage2, write_predictions
-
+    if args.static and not _is_static_capture(scene_dir):
+        raise UserError(f"--static trains the static pipeline on a static capture, but {scene_dir.name} is dynamic: "
+                        f"use --scene {scene_dir.name}_statictimestep0000 (rendered beside it by make dataset), "
+                        f"or leave out --static")
     metrics = {}
     stage1_done = bool(checkpoint_paths(run_dir, 1)) and (run_dir / "metrics_stage1.json").is_file()
     if args.stage == "1" or (args.stage == "all" and not (args.resume and stage1_done)):
@@ -89,6 +92,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"predictions: {pred}  (python -m benchmark score --data {scene_dir} --pred {pred} "
               f"--train-light {args.light} --test-light <light>)")
     return 0
+
+
+def _is_static_capture(scene_dir: Path) -> bool:
+    import json
+
+    frames = json.loads((scene_dir / "transforms_train.json").read_text()).get("frames", [])
+    return len({float(f.get("time", 0.0)) for f in frames}) <= 1
 
 
 def _report_stage1(run_dir, metrics) -> None:

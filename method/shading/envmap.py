@@ -106,6 +106,24 @@ def resample(img, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH) -> n
     return genv.downsample_envmap(arr.astype(np.float32), width, height)
 
 
+def check_envmap(img: np.ndarray, where) -> np.ndarray:
+    """An equirectangular map as read from ``where``: H x W x 3 with W = 2 H, finite, some light.
+
+    Anything else -> UserError naming the file: a map of another aspect would be looked up with the wrong
+    angles (direction_to_uv assumes 2:1), and a dark or NaN map shades every pixel black or NaN."""
+    if img.ndim != 3 or img.shape[-1] < 3:
+        raise UserError(f"environment map {where}: expected an RGB image, got shape {img.shape}")
+    h, w = img.shape[:2]
+    if h < 1 or w != 2 * h:
+        raise UserError(f"environment map {where} is {w} x {h}: an equirectangular map must be twice as wide as "
+                        f"high (e.g. {2 * h} x {h})")
+    if not np.isfinite(img).all():
+        raise UserError(f"environment map {where} contains NaN or infinite values")
+    if not (img[..., :3] > 0).any():
+        raise UserError(f"environment map {where} has no positive radiance (all zero or negative): it lights nothing")
+    return img
+
+
 def load_envmap(source: str | Path, scene_dir: str | Path | None = None, *, height: int | None = DEFAULT_HEIGHT,
                 width: int | None = DEFAULT_WIDTH, device=None, dtype=torch.float32) -> torch.Tensor:
     """An env map as an (H, W, 3) tensor from an .hdr/.exr path or a light name.
@@ -118,9 +136,10 @@ def load_envmap(source: str | Path, scene_dir: str | Path | None = None, *, heig
     text = str(source)
     path = Path(text).expanduser()
     if text.lower().endswith((".hdr", ".exr")) or "/" in text:
-        img = genv.read_envmap(path)
+        img = check_envmap(genv.read_envmap(path), path)
     elif scene_dir is not None and layout.envmap_path(Path(scene_dir), text).is_file():
-        img = genv.read_envmap(layout.envmap_path(Path(scene_dir), text))
+        img = check_envmap(genv.read_envmap(layout.envmap_path(Path(scene_dir), text)),
+                           layout.envmap_path(Path(scene_dir), text))
     else:
         from generator import lights as glights
 

@@ -2,11 +2,10 @@
 
 Rays start at x + offset * l (the paper: 0.05..0.1 scene units) so a surface point does not shadow
 itself with the splats it lies on; hits with alpha < 0.01 are skipped and marching stops once the
-transmittance is below 0.03 (DESIGN.md, Reference values). V is the transmittance along the ray.
-Indirect light is what the blocking splats show: their colours composited front to back (stage-1
-colours, sRGB-decoded, in training; relit colours at inference). shade() weights indirect by 1 - V, so
-``indirect`` returns the composite divided by its coverage 1 - T, and V env + (1 - V) indirect is exactly
-T env + sum_i alpha_i T_i c_i.
+transmittance is below 0.03 (DESIGN.md, Reference values; trace()'s defaults). V is the transmittance
+along the ray. Indirect light is what the blocking splats show: their colours composited front to back
+(stage-1 colours, sRGB-decoded). shade() weights indirect by 1 - V, so ``indirect`` returns the
+composite divided by its coverage 1 - T, and V env + (1 - V) indirect is T env + sum_i alpha_i T_i c_i.
 """
 from __future__ import annotations
 
@@ -15,59 +14,91 @@ import torch
 from lumibench.color import srgb_to_linear
 from method.splat.trace import TraceAccel, trace
 
-ALPHA_MIN = 0.01
-T_MIN = 0.03
-OFFSET_FRACTION = 0.02  # of the splat centres' largest extent: 0.05 in the benchmark's 2.6-unit scene box
+ALPHA_MIN = 0.01  # the tracer's alpha cut (trace()'s default; the grid is built with it)
+
+
+def build_accel(means, quats, scales, opacities, cell_factor: float = 1.0) -> TraceAccel:
+    """The tracer grid of splats at one time; cells of ``cell_factor`` x the median support radius
+    (stage2.trace_cell: trained scenes mix a few large splats with many small ones, and at 0.5 those
+    large splats fill so many cells that one build cost 7 s, BENCHMARKS.md)."""
+    with torch.no_grad():
+        return TraceAccel.build(means, quats, scales, opacities, alpha_min=ALPHA_MIN, cell_factor=cell_factor)
 
 
 class GaussianTracer:
-    """Callables ``visibility(origins, dirs) -> (R,)`` and ``indirect(origins, dirs) -> (R, 3)`` for shade().
+    """Callables ``visibility(origins, dirs) -> (R,)`` and ``indirect(origins, dirs) -> (R, 3)`` for shade(),
+    sharing one traversal per batch of rays (shade() asks for V, then for the indirect light of the same rays).
 
-    means (N, 3), quats (N, 4), scales (N, 2), opacities (N,) as for the rasterizer, at the frame's time.
-    colors (N, 3) or None (visibility only); sRGB in [0, 1] when ``colors_srgb`` (stage-1 colours), else
-    linear. ``offset``: ray start offset in scene units (default OFFSET_FRACTION of the scene's extent).
-    ``accel``: a TraceAccel built from these splats with alpha_min (TraceAccel.build), to reuse between
-    calls and iterations while the geometry and opacities do not change. A call to ``indirect`` with the
-    very tensors of the preceding ``visibility`` call reuses that trace (shade() calls them in this order).
+    means (N, 3), quats (N, 4), scales (N, 2), opacities (N,) as for the rasterizer, at the frame's time;
+    gradients flow to the opacities and colours, not to the geometry. ``colours_srgb`` (N, 3) in [0, 1] or
+    None (visibility only). ``offset``: ray start offset in scene units; ``extent``: the scene's size, which
+    the caller's normal lift scales with (both default from the splat centres' largest extent: 0.02 x it
+    for the offset). ``accel``: a grid from ``build_accel`` over these splats, reused while the geometry is
+    fixed. ``replay``: rays of a second pass that repeat an earlier pass's rays in the same order (one view
+    relit under several maps with the same directions) reuse its traversals (call ``rewind`` between passes).
     """
 
-    def __init__(self, means, quats, scales, opacities, colors=None, *, colors_srgb: bool = True,
-                 offset: float | None = None, alpha_min: float = ALPHA_MIN, T_min: float = T_MIN,
-                 accel: TraceAccel | None = None):
-        self.means, self.quats, self.scales, self.opacities = means, quats, scales, opacities
-        if colors is not None:
-            colors = srgb_to_linear(colors.clamp(0.0, 1.0)) if colors_srgb else colors
-        self.features = colors
-        if offset is None:
+    def __init__(self, means, quats, scales, opacities, colours_srgb=None, *, offset: float | None = None,
+                 extent: float | None = None, accel: TraceAccel | None = None, replay: bool = False):
+        self.means, self.quats, self.scales = means.detach(), quats.detach(), scales.detach()
+        self.opacities = opacities
+        self.colours_linear = None if colours_srgb is None else srgb_to_linear(colours_srgb.clamp(0, 1))
+        if extent is None or offset is None:
             with torch.no_grad():
                 ext = (means.max(0).values - means.min(0).values).max() if means.shape[0] else means.new_tensor(1.0)
-            offset = OFFSET_FRACTION * max(float(ext), 1e-6)
+            extent = max(float(ext), 1e-6) if extent is None else extent
+            offset = 0.02 * extent if offset is None else offset
         if not offset >= 0.0:
             raise ValueError(f"offset must be >= 0, got {offset}")
-        self.offset = float(offset)
-        self.alpha_min, self.T_min = float(alpha_min), float(T_min)
-        self.accel = accel if accel is not None else TraceAccel.build(means, quats, scales, opacities,
-                                                                      alpha_min=self.alpha_min)
-        self._last = None  # (origins, dirs, transmittance, composite)
+        self.offset, self.extent = float(offset), float(extent)
+        self.accel = accel if accel is not None else build_accel(self.means, self.quats, self.scales, opacities)
+        self.rays = 0
+        self.replay = replay
+        self._key = None
+        self._val = None
+        self._log: list = []
+        self._pos = 0
 
-    def trace(self, origins: torch.Tensor, dirs: torch.Tensor):
-        """(transmittance (R,), composited linear colours (R, 3) or None) of rays from origins + offset dirs."""
-        last = self._last
-        if last is not None and last[0] is origins and last[1] is dirs:
-            return last[2], last[3]
-        start = origins + self.offset * dirs
-        T, comp = trace(self.means, self.quats, self.scales, self.opacities, self.features, start, dirs,
-                        alpha_min=self.alpha_min, T_min=self.T_min, accel=self.accel)
-        self._last = (origins, dirs, T, comp)
+    @property
+    def use_indirect(self) -> bool:
+        return self.colours_linear is not None
+
+    def rewind(self) -> None:
+        self._pos = 0
+
+    def _trace(self, o, dirs):
+        if self._key is not None and self._key[0] is o and self._key[1] is dirs:
+            return self._val
+        if self.replay and self._pos < len(self._log):
+            po, pd, val = self._log[self._pos]
+            if po.shape == o.shape and torch.equal(po, o) and torch.equal(pd, dirs):
+                self._pos += 1
+                self._key, self._val = (o, dirs), val
+                return val
+        T, comp = trace(self.means, self.quats, self.scales, self.opacities, self.colours_linear,
+                        o + self.offset * dirs, dirs, accel=self.accel)
+        self.rays += o.shape[0]
+        self._key, self._val = (o, dirs), (T, comp)
+        if self.replay:
+            self._log.append((o, dirs, (T, comp)))
+            self._pos = len(self._log)
         return T, comp
 
-    def visibility(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        return self.trace(origins, dirs)[0]
+    def visibility(self, o: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        return self._trace(o, dirs)[0]
 
-    def indirect(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        if self.features is None:
-            raise ValueError("GaussianTracer was built without colors: no indirect light to trace")
-        T, comp = self.trace(origins, dirs)
-        self._last = None  # the pair is consumed: do not keep the rays (and their graph) alive
-        cover = (1.0 - T)[:, None]
-        return torch.where(cover > 1e-4, comp / cover.clamp_min(1e-4), torch.zeros_like(comp))
+    def indirect(self, o: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        if self.colours_linear is None:
+            raise ValueError("GaussianTracer was built without colours: no indirect light to trace")
+        T, comp = self._trace(o, dirs)
+        return comp / (1.0 - T).clamp_min(1e-4)[:, None]  # shade() weights it by (1 - V)
+
+
+def lifted_points(pts: torch.Tensor, n: torch.Tensor, view: torch.Tensor, distance: float) -> torch.Tensor:
+    """``pts`` moved ``distance`` along the normal turned to face the camera (``view`` points from the surface
+    to the camera): shadow rays then start off the surface, so a flat splat floor does not shadow itself
+    at grazing angles (stage2.normal_offset). ``distance`` 0: unchanged."""
+    if distance <= 0.0:
+        return pts
+    facing = torch.where((n * view).sum(-1, keepdim=True) < 0, -n, n)
+    return pts + distance * facing

@@ -1,0 +1,85 @@
+"""The benchmark predictions of a finished run (lumibench/predictions.py layout, meta.json written last):
+NVS, albedo, roughness and normals of the test views, the test views relit under every other light, the
+estimated env map, and the P maps of the training views."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from method import buffers, run_record
+from method.checkpoints import final_stage1, load_trained, scene_from_checkpoint
+from method.data import load_scene
+from method.model.materials import Materials
+from method.shading.deferred import display, render_pbr_view
+from method.train import device_name
+
+VERSION = "1"
+
+
+def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, method: str = "lumimotion",
+                      device: str = "cpu", seed: int = 0, test_lights: list[str] | None = None,
+                      progress: bool = False, albedo_from_colour: bool = False,
+                      train_scene_dir: Path | None = None) -> Path:
+    """The benchmark predictions of a finished run under ``run_dir/predictions`` (lumibench/predictions.py
+    layout; meta.json last). ``albedo_from_colour``: the 'without stage 2' ablation (canonical colour as
+    albedo, relit with the same shading). ``scene_dir`` gives the test views and light maps; the P maps of
+    the training views are written from the run's model when stage 1 did not leave them there. Refused when
+    the run's record names another scene (the training scene: ``train_scene_dir``, default ``scene_dir``),
+    light or seed."""
+    from baselines_adapters.base import save
+    from lumibench.predictions import write_meta
+    from generator.envmap import write_hdr
+    from method.data import available_lights
+    from method.shading.envmap import load_envmap
+
+    dev = torch.device(device)
+    run_dir, scene_dir = Path(run_dir), Path(scene_dir)
+    train_scene_dir = Path(train_scene_dir) if train_scene_dir is not None else scene_dir
+    run_record.check_identity(run_dir, {"scene_name": train_scene_dir.name, "light": light, "seed": int(seed)},
+                              "writing predictions")
+    pred = run_dir / "predictions"
+    (pred / "meta.json").unlink(missing_ok=True)
+    data = load_scene(scene_dir, light, cfg["data"]["background"], dev)
+    if albedo_from_colour:
+        ck = final_stage1(run_dir, dev)
+        scene = scene_from_checkpoint(ck, cfg, dev)
+        mats = Materials.init_from(scene, cfg)
+        env_est = None
+    else:
+        scene, mats = load_trained(run_dir, cfg, dev)
+        env_est = mats.env().detach()
+    lights = test_lights if test_lights is not None else [
+        x for x in available_lights(scene_dir) if x != light and (scene_dir / x / "test").is_dir()]
+    envs = {x: load_envmap(x, scene_dir, height=None, width=None, device=dev) for x in lights}
+    gen = torch.Generator().manual_seed(seed + 77)
+    s2 = cfg["stage2"]
+    from lumibench.progress import track
+
+    for v in track(data.test, description="predictions", unit="view", disable=not progress):
+        r = render_pbr_view(scene, mats, v.camera, v.time, data.background, cfg, envs, s2["dirs_eval"], gen)
+        save(pred, "nvs", v.stem, r["nvs"].cpu().numpy())
+        save(pred, "albedo", v.stem, display(r["albedo"]).cpu().numpy())
+        save(pred, "roughness", v.stem, r["roughness"].cpu().numpy())
+        save(pred, "normal", v.stem, (r["normal"] * 0.5 + 0.5).clamp(0, 1).cpu().numpy())
+        for x in lights:
+            img = buffers.over_background(display(r[f"relit:{x}"]), r["alpha"], data.background)
+            save(pred, "relight", v.stem, img.cpu().numpy(), x)
+    if env_est is not None:
+        (pred / "envmap").mkdir(parents=True, exist_ok=True)
+        write_hdr(pred / "envmap" / f"{light}.hdr", env_est.cpu().numpy())
+    timings = {}
+    tpath = run_dir / "timings.json"
+    if tpath.is_file():
+        t = json.loads(tpath.read_text())
+        timings = {k: t[k]["seconds"] for k in ("stage1", "stage2") if isinstance(t.get(k), dict)}
+    if not scene.static and not (pred / "p_map" / "train").is_dir():
+        from method.outputs import write_p_maps
+
+        write_p_maps(scene, load_scene(train_scene_dir, light, cfg["data"]["background"], dev), pred)
+    n_params = scene.num_parameters() + (0 if albedo_from_colour else mats.num_parameters())
+    write_meta(pred, {"method": method, "version": VERSION, "seed": int(seed), "device": device_name(dev),
+                      "scene": scene_dir.name, "train_light": light, "timings": timings,
+                      "model_size": {"gaussians": len(scene.g), "parameters": int(n_params)}})
+    return pred

@@ -1,0 +1,168 @@
+"""A run directory's record of itself: who it is (scene, light, seed), the configuration it trains with
+(config.yaml), a lock held while a process trains in it, and JSON files merged atomically.
+
+These are what make a run impossible to mix up silently: stage 2 or a resume on a run of another scene,
+light or seed is refused naming both; a resume with settings that differ from the record is refused
+naming the keys (the record is never rewritten by a resume); two trainings in one directory at once are
+refused naming the other process.
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import socket
+import time
+from pathlib import Path
+
+import yaml
+
+from lumibench.errors import UserError
+from lumibench.io import atomic_write_json, atomic_write_text
+
+IDENTITY_KEYS = ("scene_name", "light", "seed")
+# configuration sections that define a stage's run (a resume or the next stage must agree with the record)
+SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "data", "stage1", "stage2")}
+
+
+def identity(scene_dir: Path, light: str, seed: int, device, static: bool) -> dict:
+    return {"scene": str(Path(scene_dir).resolve()), "scene_name": Path(scene_dir).name, "light": light,
+            "seed": int(seed), "device": str(device), "static": bool(static)}
+
+
+def read_record(run_dir: Path) -> dict | None:
+    """config.yaml of a run, or None when there is none (a run directory put together by hand)."""
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        return None
+    try:
+        rec = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise UserError(f"{path}: malformed YAML ({exc.__class__.__name__}); it is the run's record: restore it "
+                        f"or start a new run directory") from None
+    return rec if isinstance(rec, dict) else None
+
+
+def check_identity(run_dir: Path, ident: dict, what: str) -> None:
+    """Refuse ``what`` (e.g. "stage 2") when the run's record names another scene, light or seed."""
+    rec = read_record(run_dir)
+    have = (rec or {}).get("run")
+    if not isinstance(have, dict):
+        return
+    diff = [k for k in IDENTITY_KEYS if k in have and str(have[k]) != str(ident[k])]
+    if diff:
+        def show(d):
+            return ", ".join(f"{k} {d.get(k)}" for k in IDENTITY_KEYS)
+        raise UserError(f"{what}: {run_dir} is a run of {show(have)}, but this command asks for {show(ident)} "
+                        f"(pass the run's own --scene/--light/--seed, or another --run-dir)")
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, dict):
+            out.update(_flat(v, key))
+        else:
+            out[key] = v
+    return out
+
+
+def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
+    """Refuse ``what`` when a setting of the stage's sections differs from the run's record (keys that
+    only one side knows are not compared: a record from an older version of the settings file)."""
+    rec = read_record(run_dir)
+    if not rec:
+        return
+    diffs = []
+    for sec in SECTIONS[stage]:
+        if sec not in rec or sec not in cfg:
+            continue
+        a = _flat(rec[sec], sec) if isinstance(rec[sec], dict) else {sec: rec[sec]}
+        b = _flat(cfg[sec], sec) if isinstance(cfg[sec], dict) else {sec: cfg[sec]}
+        diffs += [f"{k}={a[k]!r} (this command: {b[k]!r})" for k in sorted(a.keys() & b.keys()) if a[k] != b[k]]
+    if diffs:
+        more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
+        raise UserError(f"{what}: {run_dir} was trained with {'; '.join(diffs[:3])}{more}: pass the run's own "
+                        f"profile and overrides, or start another --run-dir")
+
+
+def write_record(run_dir: Path, cfg: dict, ident: dict) -> None:
+    atomic_write_text(Path(run_dir) / "config.yaml", yaml.safe_dump({**cfg, "run": ident}, sort_keys=False))
+
+
+def record_stage2(run_dir: Path, cfg: dict) -> None:
+    """Put the stage-2 settings into config.yaml when stage 2 starts (stage 1's sections stay as trained)."""
+    rec = read_record(run_dir)
+    if rec is None:
+        return
+    rec["stage2"] = dict(cfg["stage2"])
+    atomic_write_text(Path(run_dir) / "config.yaml", yaml.safe_dump(rec, sort_keys=False))
+
+
+class RunLock:
+    """An exclusive lock on a run directory for as long as a process trains in it (``RUN/.lock``, flock: the
+    kernel drops it when the process dies, so a killed run never leaves a stale lock)."""
+
+    def __init__(self, run_dir: Path):
+        self.path = Path(run_dir) / ".lock"
+        self.fd: int | None = None
+
+    def __enter__(self) -> "RunLock":
+        run_dir = self.path.parent
+        if run_dir.exists() and not run_dir.is_dir():
+            raise UserError(f"run directory {run_dir} is a file: choose a directory (--run-dir) or remove the file")
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise UserError(f"cannot write into the run directory {run_dir} ({exc.strerror}): choose a writable "
+                            f"--runs or --run-dir") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                who = os.read(fd, 512).decode(errors="replace").strip() or "another process"
+            finally:
+                os.close(fd)
+            raise UserError(f"{self.path.parent} is in use by {who}: wait for it to finish (or stop it), "
+                            f"or train into another --run-dir") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"process {os.getpid()} on {socket.gethostname()} since "
+                     f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode())
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            os.ftruncate(self.fd, 0)
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+
+def merge_json(path: Path, new: dict) -> None:
+    """Update a JSON object file with ``new``'s keys (atomically; an unreadable file starts empty)."""
+    old = {}
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            old = {}
+    old.update(new)
+    atomic_write_json(path, old)
+
+
+def truncate_log(path: Path, iteration: int) -> None:
+    """Drop the log lines after ``iteration`` (a resumed run trains them again and writes them anew)."""
+    if not path.is_file():
+        return
+    keep = []
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line cut short by the kill
+        if int(rec.get("iteration", 0)) <= iteration:
+            keep.append(line)
+    atomic_write_text(path, "".join(x + "\n" for x in keep))

@@ -1,0 +1,126 @@
+"""Deferred shading of the 2D Gaussians (paper, stage 2): rasterize colour, albedo, roughness, P and the
+normal at a time, then shade chosen pixels by Monte Carlo over the hemisphere (method.shading.render)
+with visibility and indirect light traced against the same Gaussians. Stage 2's step, its environment
+map fit, relighting and the benchmark predictions all shade through here.
+"""
+from __future__ import annotations
+
+import torch
+
+from lumibench.color import linear_to_srgb, srgb_to_linear
+from method import buffers
+from method.buffers import MATERIALS
+from method.model.materials import Materials
+from method.model.scene import Deformed, DynamicScene
+from method.shading.envmap import luminance, texel_solid_angles
+from method.shading.render import shade
+from method.shading.visibility import GaussianTracer, build_accel, lifted_points
+from method.splat.camera import Camera
+from method.splat.rasterize import RasterOutput, rasterize
+from method.splat.trace import TraceAccel
+
+
+def display(rgb_linear: torch.Tensor) -> torch.Tensor:
+    """Blender's Standard view transform: clip to [0, 1], then the sRGB transfer function."""
+    return linear_to_srgb(rgb_linear.clamp(0.0, 1.0))
+
+
+def raster_materials(d: Deformed, mats: Materials, camera: Camera, background: torch.Tensor) -> RasterOutput:
+    """Rasterize the MATERIALS layout (colour, albedo, roughness, P) with the stage-1 colour on the background."""
+    feats = buffers.pack(MATERIALS, colour=d.colours, albedo=mats.albedo_display(), roughness=mats.roughness(),
+                         p=d.p)
+    return rasterize(d.means, d.quats, d.scales, d.opacities, feats, camera,
+                     buffers.background_for(MATERIALS, background, feats))
+
+
+def accel_for(d: Deformed, cell_factor: float = 1.0, opacities: torch.Tensor | None = None) -> TraceAccel:
+    """The tracer grid of the Gaussians at one time (``opacities``: those the grid is built with, default d's)."""
+    return build_accel(d.means, d.quats, d.scales, d.opacities if opacities is None else opacities, cell_factor)
+
+
+def tracer_for(d: Deformed, accel: TraceAccel, offset: float, indirect: bool, *, extent: float,
+               replay: bool = False) -> GaussianTracer:
+    """The tracer of the Gaussians at one time: visibility, and indirect light from their (stage-1) colours."""
+    return GaussianTracer(d.means, d.quats, d.scales, d.opacities, d.colours if indirect else None, offset=offset,
+                          extent=extent, accel=accel, replay=replay)
+
+
+def surface_points(out: RasterOutput, camera: Camera, pix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World positions (from the camera-z depth) and unit directions towards the camera at flat pixel ids."""
+    W = camera.width
+    x = (pix % W).to(out.depth_expected.dtype) + 0.5
+    y = torch.div(pix, W, rounding_mode="floor").to(out.depth_expected.dtype) + 0.5
+    d_cam = torch.stack([(x - camera.cx) / camera.focal, (y - camera.cy) / camera.focal, torch.ones_like(x)], -1)
+    d_world = d_cam @ camera.c2w[:3, :3].to(d_cam).T
+    depth = out.depth_expected.reshape(-1)[pix]
+    pts = camera.center.to(d_cam) + depth[:, None] * d_world
+    view = -d_world / d_world.norm(dim=-1, keepdim=True)
+    return pts, view
+
+
+def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor:
+    """One proposal for several maps: each map scaled to unit total power, then averaged, so every map's
+    bright texels (a small sun) keep their share of the samples."""
+    out = None
+    for e in envs:
+        h, w = e.shape[:2]
+        power = float((luminance(e).clamp_min(0) * texel_solid_angles(h, w, e.device, e.dtype)).sum())
+        part = e / max(power, 1e-12)
+        out = part if out is None else out + part
+    return out / len(envs)
+
+
+def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict, env: torch.Tensor,
+                 n_dirs: int, generator: torch.Generator, tracer: GaussianTracer | None, sampling_env=None):
+    """Linear RGB of the pixels ``pix`` (flat ids) shaded under ``env``; also their albedo (linear) and
+    roughness. ``s2``: the stage-2 settings (albedo clamp, normal lift, env quadrature)."""
+    a = out.alpha.reshape(-1)[pix]
+    f = out.features.reshape(-1, out.features.shape[-1])[pix]
+    albedo = srgb_to_linear(buffers.channel(f, a, MATERIALS.albedo)).clamp(s2["albedo_min"], s2["albedo_max"])
+    rough = buffers.channel(f, a, MATERIALS.roughness)
+    n = buffers.unit(out.normal.reshape(-1, 3)[pix])
+    pts, view = surface_points(out, camera, pix)
+    if tracer is not None:
+        pts = lifted_points(pts, n, view, float(s2["normal_offset"]) * tracer.extent)
+    vis = tracer.visibility if tracer is not None else None
+    ind = tracer.indirect if (tracer is not None and tracer.use_indirect) else None
+    rgb = shade(pts.detach(), n, view, albedo, rough, env, n_dirs, generator, visibility=vis, indirect=ind,
+                sampling_env=sampling_env, env_quadrature=bool(s2["env_quadrature"]))
+    return rgb, albedo, rough
+
+
+@torch.no_grad()
+def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: float, background: torch.Tensor,
+                    cfg: dict, envs: dict[str, torch.Tensor], n_dirs: int, generator: torch.Generator,
+                    accel: TraceAccel | None = None, indirect: bool = False) -> dict:
+    """Full-image maps of one view: NVS colour, albedo (linear), roughness, normal, alpha, P, and the
+    relit linear RGB under each env map of ``envs`` (visibility traced; indirect light off by default,
+    since the stage-1 colours carry the training light)."""
+    s2 = cfg["stage2"]
+    d = scene.deform(t, p_mode="inference")
+    out = raster_materials(d, mats, camera, background)
+    H, W = camera.height, camera.width
+    a = out.alpha.clamp(0, 1)
+    fg = torch.nonzero((a > 0.5).reshape(-1)).squeeze(1)
+    res = {"nvs": out.features[..., MATERIALS.colour].clamp(0, 1), "alpha": a,
+           "albedo": srgb_to_linear(buffers.channel(out.features, a, MATERIALS.albedo)),
+           "roughness": buffers.channel(out.features, a, MATERIALS.roughness),
+           "normal": buffers.unit(out.normal),
+           "p": buffers.channel(out.features, a, MATERIALS.p)}
+    if fg.numel() and envs:
+        acc = accel if accel is not None else accel_for(d, s2["trace_cell"])
+        # one direction set for every map (env samples drawn from the maps' mixture), so the traversals of
+        # the first map are replayed for the others instead of traced again
+        tracer = tracer_for(d, acc, s2["trace_offset"] * scene.extent, indirect, extent=scene.extent,
+                            replay=len(envs) > 1)
+        start = generator.get_state()
+        same_size = len({tuple(e.shape) for e in envs.values()}) == 1
+        mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 and same_size else None
+        for name, env in envs.items():
+            generator.set_state(start)
+            tracer.rewind()
+            rgb, _, _ = shade_pixels(out, camera, fg, s2, env.to(a), n_dirs, generator, tracer, sampling_env=mixture)
+            img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=rgb.device)
+            img[fg] = rgb
+            res[f"relit:{name}"] = img.reshape(H, W, 3)
+    return res
