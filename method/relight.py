@@ -141,9 +141,9 @@ def relight(run_dir, envmap: str, *, views: str = "test", time: float | None = N
     (default RUN/relight/<envmap name>). An earlier relight's outputs in ``out`` are removed first (see
     ``clear_previous_outputs``), so the folder holds exactly this relight. ``data``: where the run's scene
     is now, when the dataset moved since training (a scene directory or a data root)."""
+    from method.checkpoints import load_trained
     from method.data import load_scene
     from method.shading.envmap import load_envmap
-    from method.checkpoints import load_trained
 
     run_dir = Path(run_dir)
     cfg = read_run_config(run_dir)
@@ -162,9 +162,9 @@ def relight(run_dir, envmap: str, *, views: str = "test", time: float | None = N
     scene_dir = resolve_scene_dir(run_dir, ident, cfg.get("profile"), data)
     name = Path(envmap).stem if ("/" in envmap or envmap.lower().endswith((".hdr", ".exr"))) else envmap
     out = Path(out) if out else run_dir / "relight" / name
+    env = load_envmap(envmap, scene_dir, height=None, width=None, device=dev)
     prepare_output(out)
     scene, mats = load_trained(run_dir, cfg, dev)
-    env = load_envmap(envmap, scene_dir, height=None, width=None, device=dev)
     sd = load_scene(scene_dir, ident["light"], cfg["data"]["background"], dev)
     if views == "test":
         if not sd.test:
