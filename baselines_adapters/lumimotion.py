@@ -64,21 +64,17 @@ class LumiMotionAdapter(MethodAdapter):
         self.budget = budget
 
     def overrides(self, profile: str) -> list[str]:
-        from method.config import load_method_config
+        from method.config import ITERATION_KEYS, load_method_config
 
         out = list(self.variant["overrides"])
         if self.budget:
             frac, cap = parse_budget(self.budget)
             cfg = load_method_config(profile)
-            if frac != 1.0:
-                for stage in ("stage1", "stage2"):
-                    out.append(f"{stage}.iterations={max(1, round(cfg[stage]['iterations'] * frac))}")
-                s1 = cfg["stage1"]
-                for key in ("densify_until", "normal_from", "distortion_from", "warmup", "densify_from"):
-                    out.append(f"stage1.{key}={max(1, round(s1[key] * frac))}")
-                for key in ("c2f_until", "time_window_until"):  # the curricula shrink with the run
-                    if s1[key] > 0:
-                        out.append(f"stage1.{key}={max(1, round(s1[key] * frac))}")
+            if frac != 1.0:  # every schedule point scales with the run (0 stays 0: a mechanism that is off)
+                for stage, keys in ITERATION_KEYS.items():
+                    for key in keys:
+                        if cfg[stage][key] > 0:
+                            out.append(f"{stage}.{key}={max(1, round(cfg[stage][key] * frac))}")
             if cap:
                 out.append(f"stage1.max_gaussians={cap}")
                 out.append(f"stage1.init_points={min(cap, cfg['stage1']['init_points'])}")

@@ -19,6 +19,15 @@ from lumibench.profiles import CONFIG_DIR, load_profile
 
 METHOD_CONFIG = CONFIG_DIR / "method" / "lumimotion.yaml"
 
+# the settings that are points in a stage's schedule (an iteration count or an iteration number): a
+# budget variant (baselines_adapters/lumimotion.py, "@0.5") scales every one of them with the iterations,
+# so a shorter run keeps the same shape; periods (checkpoint_every, densify_every, ...) are not scaled
+ITERATION_KEYS = {
+    "stage1": ("iterations", "warmup", "normal_from", "distortion_from", "densify_from", "densify_until",
+               "c2f_until", "time_window_until"),
+    "stage2": ("iterations",),
+}
+
 
 def _check_value(key: str, default: Any, value: Any, source: str) -> Any:
     if isinstance(default, bool):
@@ -143,9 +152,11 @@ def _validate(cfg: dict) -> None:
     for key in ("checkpoint_every", "densify_every", "log_every"):
         if s[key] < 1:
             raise UserError(f"key 'stage1.{key}' must be >= 1 (got {s[key]})")
-    if cfg["stage2"]["pbr_loss"] not in ("l1", "l2_decorrelated"):
-        raise UserError(f"key 'stage2.pbr_loss' must be l1 or l2_decorrelated (got {cfg['stage2']['pbr_loss']!r})")
-    if not 0 < cfg["stage2"]["lr_final_factor"] <= 1:
-        raise UserError(f"key 'stage2.lr_final_factor' must be in (0, 1] (got {cfg['stage2']['lr_final_factor']})")
+    for key in ("checkpoint_every", "log_every"):
+        if cfg["stage2"][key] < 1:
+            raise UserError(f"key 'stage2.{key}' must be >= 1 (got {cfg['stage2'][key]})")
+    for key in ("opacity_reset_every", "eval_every"):
+        if s[key] < 0:
+            raise UserError(f"key 'stage1.{key}' must be >= 0 (0: never; got {s[key]})")
     if any(not 0 <= c <= 1 for c in cfg["data"]["background"]):
         raise UserError(f"key 'data.background' must be three values in [0, 1] (got {cfg['data']['background']})")

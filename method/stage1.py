@@ -134,15 +134,8 @@ def stage1_loss(out: RasterOutput, d: Deformed, rgb_gt: torch.Tensor, alpha_gt: 
 # ------------------------------------------------------------------ set-up, curricula, outputs
 
 def mlp_lr(iteration: int, total: int, s1: dict) -> float:
-    """The deformation network's rate: exponential decay from ``lr_mlp`` to ``lr_mlp * lr_mlp_final``, on the
-    base ``lr_mlp_warmup`` instead during the P = 1 warm-up when that is set (> 0): a slow warm-up keeps the
-    static Gaussians' wobble small for the split by motion, a faster rate afterwards lets the dynamic ones
-    catch fast motion (BENCHMARKS.md, session 11)."""
-    base = s1["lr_mlp"]
-    if s1["lr_mlp_warmup"] > 0 and iteration <= s1["warmup"]:
-        base = s1["lr_mlp_warmup"]
-    return expon_lr(iteration, total, base, base * s1["lr_mlp_final"])
-
+    """The deformation network's rate: exponential decay from ``lr_mlp`` to ``lr_mlp * lr_mlp_final`` (paper)."""
+    return expon_lr(iteration, total, s1["lr_mlp"], s1["lr_mlp"] * s1["lr_mlp_final"])
 
 
 def carve(points: torch.Tensor, data: SceneData, fraction: float = 0.5) -> torch.Tensor:
@@ -343,8 +336,8 @@ class Stage1:
                 grp["lr"] = mlp_lr(it, total, s)
         view = self._view(it, gen)
         if s["p_from_motion"] and it == s["warmup"] + 1 and not scene.static and scene.separation:
-            info = assign_p_from_motion(scene, self.train_times, s["p_motion_threshold"] or None,
-                                        s["p_from_motion_logit"], s["p_motion_relative"])
+            info = assign_p_from_motion(scene, self.train_times, None, s["p_from_motion_logit"],
+                                        s["p_motion_relative"])
             self.gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())
             log({"iteration": it, "p_from_motion": info})
         warm = it <= s["warmup"]

@@ -9,8 +9,8 @@ A step: rasterize colour, albedo, roughness, normal and depth at a training fram
 shading); on randomly sampled foreground pixels, Monte Carlo over the hemisphere (method.shading.render)
 with visibility and indirect light traced against the Gaussians at that time; loss = L1 of the shaded
 pixels against the image + lambda_lc L_c of the rasterized colour + lambda_env_lower L2(lower env).
-Because the geometry is frozen, each frame's tracer grid is built once and cached (accel_refresh
-rebuilds them as the fine-tuned opacities drift).
+Because the geometry is frozen, each frame's tracer grid is built once, from the opacities stage 2 started
+with, and cached (the tracer's alphas use the current, fine-tuned opacities).
 """
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def make_optimiser(scene: DynamicScene, mats: Materials, head: list, cfg: dict) 
     groups = [
         {"params": [mats.albedo_logit], "lr": s2["lr_albedo"], "name": "albedo"},
         {"params": [mats.roughness_logit], "lr": s2["lr_roughness"], "name": "roughness"},
-        {"params": list(mats.env.parameters()), "lr": s2["lr_env"], "name": "env"},
+        *([] if s2["env_fixed"] else [{"params": list(mats.env.parameters()), "lr": s2["lr_env"], "name": "env"}]),
         {"params": [scene.g.t["colour_logit"]], "lr": s1["lr_colour"] * f, "name": "colour"},
         {"params": [scene.g.t["opacity_logit"]], "lr": s1["lr_opacity"] * f, "name": "opacity"},
     ]
@@ -64,42 +64,15 @@ def make_optimiser(scene: DynamicScene, mats: Materials, head: list, cfg: dict) 
     return torch.optim.Adam(groups, eps=1e-15)
 
 
-MATERIAL_GROUPS = ("albedo", "roughness", "env")
-
-
-def material_lr_scale(iteration: int, total: int, final_factor: float) -> float:
-    """Exponential decay of the materials' learning rates, 1 at the start to ``final_factor`` at ``total``.
-    Each step's estimate uses a few directions per pixel, and at a constant rate the roughness drifts with
-    that noise; decayed to 0.1 it stays near its init, but the albedo, still improving late in the run, loses
-    up to 0.45 dB (BENCHMARKS.md, session 7), so every profile keeps 1 (constant, as the paper)."""
-    return expon_lr(iteration, total, 1.0, float(final_factor))
-
-
-def set_material_lrs(opt: torch.optim.Optimizer, cfg: dict, iteration: int, total: int) -> None:
-    """The materials' rates for the step after ``iteration`` steps: decayed by ``lr_final_factor``, and the
-    env map's held at 0 for its first ``env_freeze_until`` steps (a fitted start map is kept while the
-    albedo, which starts with the training light's shading in it, adapts to it: env_fit.py)."""
-    s2 = cfg["stage2"]
-    k = material_lr_scale(iteration, total, s2["lr_final_factor"])
-    for grp in opt.param_groups:
-        if grp["name"] in MATERIAL_GROUPS:
-            frozen = grp["name"] == "env" and iteration < s2["env_freeze_until"]
-            grp["lr"] = 0.0 if frozen else s2[f"lr_{grp['name']}"] * k
-
-
-def decorrelated_l2(a: torch.Tensor, b: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """mean((a - y)(b - y)) for two independent Monte Carlo estimates a, b of the same pixels: its expectation
-    is the squared error of the estimator's mean, so its gradient is unbiased. Why not L1 at a small direction
-    budget: a sun texel that most pixels' few directions miss makes each estimate bimodal, L1 drives the
-    median (the miss) to the image, and the sun is never learned; plain L2 would add the estimator's
-    variance, which also grows with the sun (the two-sample trick of Azinovic et al., CVPR 2019)."""
-    return ((a - target) * (b - target)).mean()
-
-
 def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: dict, generator: torch.Generator,
-                     accel_cache: dict, frame_key, iteration: int, trunk_cache: dict | None = None):
-    """One stage-2 loss evaluation; returns (loss, terms, rays traced). ``trunk_cache``: see
-    DynamicScene.deform (the frozen network's trunk once per training time)."""
+                     accel_cache: dict, frame_key, trunk_cache: dict | None = None,
+                     grid_opacities: torch.Tensor | None = None):
+    """One stage-2 loss evaluation; returns (loss, terms, rays traced).
+
+    ``accel_cache``: the tracer grid of each training frame (``frame_key``), built on its first use from
+    ``grid_opacities`` (default: the current ones). Stage 2 passes the opacities it started from, so a
+    frame's grid does not depend on when it was first drawn and a resumed run rebuilds the same grids.
+    ``trunk_cache``: see DynamicScene.deform (the frozen network's trunk once per training time)."""
     s2 = cfg["stage2"]
     d = scene.deform(view.time, p_mode="inference", trunk_cache=trunk_cache)
     out = raster_materials(d, mats, view.camera, data_bg)
@@ -111,23 +84,15 @@ def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: d
     rays = 0
     if fg.numel():
         pick = fg[torch.randperm(fg.numel(), generator=generator)[:n_pix].to(fg.device)]
-        refresh = s2["accel_refresh"]
-        if frame_key not in accel_cache or (refresh and iteration % refresh == 0):
-            accel_cache[frame_key] = accel_for(d, s2["trace_cell"])
+        if frame_key not in accel_cache:
+            accel_cache[frame_key] = accel_for(d, s2["trace_cell"], grid_opacities)
         tracer = tracer_for(d, accel_cache[frame_key], s2["trace_offset"] * scene.extent, s2["indirect"],
                             extent=scene.extent)
-        gt = view.rgb.reshape(-1, 3)[pick]
-        if s2["pbr_loss"] == "l1":
-            rgb, _, _ = shade_pixels(out, view.camera, pick, s2, mats.env(), s2["dirs_train"], generator, tracer)
-            terms["pbr"] = (display(rgb) - gt).abs().mean()
-        else:  # two independent half-budget estimates of each pixel (the same rays in all)
-            half = max(1, s2["dirs_train"] // 2)
-            rgb, _, _ = shade_pixels(out, view.camera, torch.cat([pick, pick]), s2, mats.env(), half, generator,
-                                     tracer)
-            terms["pbr"] = decorrelated_l2(display(rgb[: pick.numel()]), display(rgb[pick.numel():]), gt)
+        rgb, _, _ = shade_pixels(out, view.camera, pick, s2, mats.env(), s2["dirs_train"], generator, tracer)
+        terms["pbr"] = (display(rgb) - view.rgb.reshape(-1, 3)[pick]).abs().mean()
         total = total + terms["pbr"]
         rays = tracer.rays
-    if s2["lambda_env_lower"] > 0:
+    if s2["lambda_env_lower"] > 0 and not s2["env_fixed"]:
         terms["env_lower"] = lower_hemisphere_l2(mats.env())
         total = total + s2["lambda_env_lower"] * terms["env_lower"]
     return total, terms, rays
@@ -192,7 +157,12 @@ class Stage2:
         self.trunk_cache: dict | None = None
         self.rays_total = 0
 
-    def _ready(self) -> None:
+    def _ready(self, grid_opacity_logit: torch.Tensor) -> None:
+        """Freeze what stage 2 keeps, build the optimiser; the tracer grids use the stage's start opacities."""
+        self._grid_logit = grid_opacity_logit.detach().cpu()
+        self.grid_opacities = torch.sigmoid(grid_opacity_logit.to(self.device))
+        if self.cfg["stage2"]["env_fixed"]:
+            self.mats.env.requires_grad_(False)
         head = freeze_geometry(self.scene)
         self.opt = make_optimiser(self.scene, self.mats, head, self.cfg)
         self.trunk_cache = {} if self.scene.net is not None else None  # ~10 MB per training time at 20k
@@ -206,21 +176,23 @@ class Stage2:
             self.mats.env = LearnableEnvMap(s2["env_height"], s2["env_width"], env0).to(self.device)
             self.prior_seconds = self.env_fit_record["seconds"]  # stage 2's seconds include the fit
             log({"iteration": 0, "env_fit": self.env_fit_record})
-        self._ready()
+        self._ready(self.scene.g.t["opacity_logit"].detach().clone())
 
     def resume(self, ck: dict) -> None:
         self.scene = scene_from_checkpoint(ck, self.cfg, self.device)
         self.mats = Materials.from_state(ck["materials"], self.cfg, self.device)
-        self._ready()
+        self._ready(ck["grid_opacity_logit"])
         self.opt.load_state_dict(ck["opt"])
 
     def state(self) -> dict:
-        return {**scene_state(self.scene), "materials": self.mats.state(), "opt": self.opt.state_dict()}
+        return {**scene_state(self.scene), "materials": self.mats.state(), "opt": self.opt.state_dict(),
+                "grid_opacity_logit": self._grid_logit}
 
     def forward(self, it: int, total: int, gen: torch.Generator, timer, log):
         k = int(torch.randint(len(self.data.train), (1,), generator=gen))
         loss, terms, rays = stage2_step_loss(self.scene, self.mats, self.data.train[k], self.data.background,
-                                             self.cfg, gen, self.accel_cache, k, it, self.trunk_cache)
+                                             self.cfg, gen, self.accel_cache, k, self.trunk_cache,
+                                             self.grid_opacities)
         self.rays_total += rays
         return loss, terms
 
@@ -231,7 +203,6 @@ class Stage2:
         self.opt.zero_grad(set_to_none=True)
 
     def optimiser_step(self, it: int, total: int) -> None:
-        set_material_lrs(self.opt, self.cfg, it - 1, total)
         self.opt.step()
 
     def after_step(self, it: int, gen: torch.Generator, timer) -> None:

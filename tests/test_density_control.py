@@ -361,23 +361,6 @@ def test_adam_keep_and_append_directly():
         assert float(after[name]["exp_avg_sq"][2:].abs().sum()) == 0.0
 
 
-def test_extra_groups_are_left_alone():
-    g = _gaussians([SMALL, BIG])
-    w = torch.nn.Parameter(torch.ones(3))
-    opt = GaussianAdam(g, LRS, extra_groups=[{"params": [w], "lr": 0.1, "name": "net"}])
-    for k in PER_GAUSSIAN:
-        g.t[k].grad = torch.ones_like(g.t[k])
-    w.grad = torch.ones(3)
-    opt.step()
-    st_w = {k: v.clone() for k, v in opt.opt.state[w].items()}
-    densify_and_prune(g, opt, _stats([0.9, 0.9]), generator=torch.Generator().manual_seed(0), **DEFAULTS)
-    assert len(g) == 4
-    for k, v in opt.opt.state[w].items():
-        torch.testing.assert_close(v, st_w[k], rtol=0, atol=0)
-
-
-# ---------------------------------------------------------------------------------------- opacity reset
-
 def test_reset_opacity_clamps_to_the_value_and_clears_only_the_opacity_moments():
     g = _gaussians([SMALL] * 4, opacities=[0.9, 0.005, 0.5, 0.0101])
     opt = _stepped_adam(g)

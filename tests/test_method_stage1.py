@@ -378,26 +378,20 @@ def test_p_from_motion_runs_at_the_warmup_end_and_resumes_across_it(ci_dataset, 
         assert torch.equal(a["gaussians"][k], b["gaussians"][k]), k
 
 
-def test_network_rate_in_and_after_the_warmup(ci_dataset, tmp_path):
-    """stage1.lr_mlp_warmup: the network's rate follows the same exponential decay on that base until the
-    warm-up's last iteration, on lr_mlp after it; 0 keeps lr_mlp throughout."""
+def test_network_rate_decays_exponentially(ci_dataset, tmp_path):
+    """The network's rate in the checkpoints: lr_mlp decaying exponentially to lr_mlp * lr_mlp_final."""
     from method.checkpoints import checkpoint_paths, load_checkpoint
     from method.schedules import expon_lr
-    from method.stage1 import mlp_lr
     from method.train import train_stage1
 
-    s1 = {"lr_mlp": 4e-3, "lr_mlp_final": 0.1, "lr_mlp_warmup": 1e-3, "warmup": 6}
-    assert mlp_lr(6, 8, s1) == pytest.approx(expon_lr(6, 8, 1e-3, 1e-4))
-    assert mlp_lr(7, 8, s1) == pytest.approx(expon_lr(7, 8, 4e-3, 4e-4))
-    assert mlp_lr(6, 8, {**s1, "lr_mlp_warmup": 0.0}) == pytest.approx(expon_lr(6, 8, 4e-3, 4e-4))
     torch.set_num_threads(1)
     run = tmp_path / "run"
     train_stage1(ci_dataset, "city", run, _cfg(["stage1.iterations=8", "stage1.checkpoint_every=6",
-                                                "stage1.lr_mlp=4e-3", "stage1.lr_mlp_warmup=1e-3"]),
+                                                "stage1.lr_mlp=4e-3", "stage1.lr_mlp_final=0.1"]),
                  seed=0, progress=False, write_outputs=False)
     lrs = {i: load_checkpoint(p, "cpu")["nopt"]["param_groups"][0]["lr"] for i, p in checkpoint_paths(run)}
-    assert lrs[6] == pytest.approx(expon_lr(6, 8, 1e-3, 1e-4))
-    assert lrs[8] == pytest.approx(expon_lr(8, 8, 4e-3, 4e-4))
+    assert lrs[6] == pytest.approx(expon_lr(6, 8, 4e-3, 4e-4)) and lrs[8] == pytest.approx(4e-4)
+    assert expon_lr(4, 8, 4e-3, 4e-4) == pytest.approx(4e-3 * 0.1 ** 0.5)  # the geometric midpoint
 
 
 def test_nan_guard_stops_names_the_term_and_keeps_the_checkpoint(ci_dataset, tmp_path, monkeypatch, capsys):

@@ -479,3 +479,70 @@ def test_shading_matches_blender_on_calib_sphere(calib_datasets, scene):
             assert npx > 2500, (quadrature, report)
             assert glob <= 0.02, (quadrature, report)
             assert sectors <= 0.04, (quadrature, report)
+
+
+# ------------------------------------------------------------- the production tracer against brute force
+
+def _jittered_floor(n: int = 12, spacing: float = 0.1, jitter: float = 0.02, seed: int = 0):
+    """A floor of splats around z = 0 with small random heights and tilts, plus a few coloured blockers above."""
+    g = torch.Generator().manual_seed(seed)
+    ticks = (torch.arange(n, dtype=torch.float64) - (n - 1) / 2) * spacing
+    x, y = torch.meshgrid(ticks, ticks, indexing="ij")
+    floor = torch.stack([x.reshape(-1), y.reshape(-1), jitter * (torch.rand(n * n, generator=g, dtype=torch.float64) - 0.5)], 1)
+    tilt = 0.15 * (torch.rand(n * n, 2, generator=g, dtype=torch.float64) - 0.5)
+    fq = torch.cat([torch.ones(n * n, 1, dtype=torch.float64), tilt, torch.zeros(n * n, 1, dtype=torch.float64)], 1)
+    blockers = torch.tensor([[0.1, 0.0, 0.3], [-0.2, 0.1, 0.25], [0.0, -0.2, 0.4]], dtype=torch.float64)
+    bq = torch.tensor([[1.0, 0.3, 0.0, 0.0], [0.9, 0.0, 0.4, 0.0], [1.0, 0.0, 0.0, 0.2]], dtype=torch.float64)
+    means, quats = torch.cat([floor, blockers]), torch.cat([fq, bq])
+    N = means.shape[0]
+    scales = torch.cat([torch.full((n * n, 2), spacing * 0.7, dtype=torch.float64),
+                        torch.full((3, 2), 0.12, dtype=torch.float64)])
+    opac = 0.3 + 0.6 * torch.rand(N, generator=g, dtype=torch.float64)
+    cols = torch.rand(N, 3, generator=g, dtype=torch.float64)
+    return means, quats, scales, opac, cols
+
+
+def test_tracer_visibility_and_indirect_match_the_brute_force_trace():
+    """GaussianTracer (the one stage 2, relighting and the env fit use): V is the brute-force transmittance
+    from x + offset omega and indirect the brute-force composite of the linearised colours over its
+    coverage, so shade's V env + (1 - V) indirect = T env + composite."""
+    from method.splat.reference import trace_dense
+
+    means, quats, scales, opac, cols = _jittered_floor()
+    g = torch.Generator().manual_seed(1)
+    o = torch.cat([torch.rand(64, 2, generator=g, dtype=torch.float64) * 0.6 - 0.3,
+                   torch.zeros(64, 1, dtype=torch.float64)], 1)
+    d = _unit(torch.rand(64, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 2.0, 1.0], dtype=torch.float64)
+              - torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64))
+    tracer = GaussianTracer(means, quats, scales, opac, cols, offset=0.03)
+    V, ind = tracer.visibility(o, d), tracer.indirect(o, d)
+    T, comp = trace_dense(means, quats, scales, opac, srgb_to_linear(cols), o + 0.03 * d, d)
+    assert 0.2 < float((T < 0.9).double().mean()) < 0.9  # some rays blocked, some not: the case has both
+    assert torch.allclose(V, T, atol=1e-9)
+    assert torch.allclose(ind, comp / (1 - T).clamp_min(1e-4)[:, None], atol=1e-8)
+    env = torch.rand(3, dtype=torch.float64)
+    assert torch.allclose(V[:, None] * env + (1 - V[:, None]) * ind, T[:, None] * env + comp, atol=1e-8)
+
+
+def test_normal_lift_stops_a_jittered_floor_shadowing_itself():
+    """stage2.normal_offset: a point on a floor of slightly tilted splats, traced towards grazing directions,
+    is shadowed by its neighbours (brute force) unless it is first lifted along its normal turned to the
+    camera; the lift moves it by exactly that distance, whichever way the normal pointed."""
+    from method.shading.visibility import lifted_points
+    from method.splat.reference import trace_dense
+
+    means, quats, scales, opac, cols = _jittered_floor()
+    p = torch.tensor([[0.02, -0.03, 0.0]], dtype=torch.float64).expand(32, 3)
+    az = torch.arange(32, dtype=torch.float64) * (2 * math.pi / 32)
+    el = math.radians(4.0)
+    d = torch.stack([math.cos(el) * torch.cos(az), math.cos(el) * torch.sin(az), torch.full_like(az, math.sin(el))], 1)
+    view = _unit(torch.tensor([[0.3, 0.2, 1.0]], dtype=torch.float64)).expand(32, 3)
+    for n in (torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, -1.0])):
+        lifted = lifted_points(p, n.to(p).expand(32, 3), view, 0.05)
+        assert torch.allclose(lifted, p + torch.tensor([0.0, 0.0, 0.05], dtype=torch.float64))
+    tracer = GaussianTracer(means, quats, scales, opac, cols, offset=0.01)
+    low = tracer.visibility(p.clone(), d)
+    high = tracer.visibility(lifted, d)
+    assert torch.allclose(low, trace_dense(means, quats, scales, opac, None, p + 0.01 * d, d)[0], atol=1e-9)
+    assert float(low.mean()) < 0.8 and float(high.min()) > float(low.mean())
+    assert float(high.mean()) > 0.9

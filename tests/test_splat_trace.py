@@ -280,3 +280,28 @@ def test_values_without_gradients_equal_the_differentiable_path():
     assert float(T0.min()) < 0.1
     torch.testing.assert_close(T0, T1.detach(), atol=0, rtol=0)
     torch.testing.assert_close(F0, F1.detach(), atol=0, rtol=0)
+
+
+def test_a_grid_built_with_other_opacities_traces_with_the_given_ones(splat_backend):
+    """A grid kept while opacities change (stage 2 fine-tunes them) selects the hits; the alphas come from
+    the opacities passed, with or without gradients and on either backend."""
+    from method.splat.trace import TraceAccel, trace
+
+    g = torch.Generator().manual_seed(0)
+    N = 40
+    means = torch.rand(N, 3, generator=g, dtype=torch.float64) - 0.5
+    quats = torch.randn(N, 4, generator=g, dtype=torch.float64)
+    scales = 0.1 + 0.1 * torch.rand(N, 2, generator=g, dtype=torch.float64)
+    op0 = 0.3 + 0.5 * torch.rand(N, generator=g, dtype=torch.float64)
+    op1 = (op0 * 1.2).clamp_max(0.95)
+    cols = torch.rand(N, 3, generator=g, dtype=torch.float64)
+    o = torch.zeros(64, 3, dtype=torch.float64) + torch.tensor([0.0, 0.0, -2.0], dtype=torch.float64)
+    d = torch.randn(64, 3, generator=g, dtype=torch.float64) * 0.2 + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    kept = TraceAccel.build(means, quats, scales, op0)
+    with torch.no_grad():
+        T_nograd, c_nograd = trace(means, quats, scales, op1, cols, o, d, accel=kept)
+    w = op1.clone().requires_grad_(True)
+    T_grad, c_grad = trace(means, quats, scales, w, cols, o, d, accel=kept)
+    assert torch.allclose(T_nograd, T_grad.detach(), atol=1e-12) and torch.allclose(c_nograd, c_grad.detach(), atol=1e-12)
+    T_old, _ = trace(means, quats, scales, op0, cols, o, d, accel=kept)
+    assert (T_old - T_nograd).abs().max() > 1e-3  # the opacities matter on these rays

@@ -20,7 +20,6 @@ Each check compares the directional derivative along random directions (one pair
 """
 from __future__ import annotations
 
-import inspect
 from types import SimpleNamespace
 
 import pytest
@@ -133,14 +132,9 @@ def _setup(dynamic=False, uniform_floor_roughness=True, overrides=(), seed=0):
     return SimpleNamespace(scene=scene, mats=mats, view=view, bg=bg, cfg=cfg, params=params, cache={})
 
 
-# the iteration argument (the grid refresh schedule) is not in every version of stage2_step_loss
-_ITERATION = {"iteration": 1} if "iteration" in inspect.signature(stage2_step_loss).parameters else {}
-
-
 def _loss(s) -> tuple[torch.Tensor, dict, int]:
     gen = torch.Generator().manual_seed(123)  # the same pixels and offsets at every evaluation
-    return stage2_step_loss(s.scene, s.mats, s.view, s.bg, s.cfg, gen, accel_cache=s.cache, frame_key="frame",
-                            **_ITERATION)
+    return stage2_step_loss(s.scene, s.mats, s.view, s.bg, s.cfg, gen, accel_cache=s.cache, frame_key="frame")
 
 
 def _autograd(s) -> dict[str, torch.Tensor]:

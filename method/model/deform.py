@@ -6,8 +6,6 @@ every Gaussian at its canonical state (and the dynamic model equals the static o
 """
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
@@ -75,8 +73,3 @@ def binary_concrete(logits: torch.Tensor, temperature: float, generator: torch.G
     u = torch.rand(logits.shape, generator=generator, dtype=logits.dtype).to(logits.device)
     u = u.clamp(1e-6, 1 - 1e-6)
     return torch.sigmoid((logits + torch.log(u) - torch.log1p(-u)) / temperature)
-
-
-def logit_for_probability(p: float, temperature: float) -> float:
-    """The logit whose inference P equals ``p``."""
-    return temperature * math.log(p / (1 - p))

@@ -28,9 +28,6 @@ class DensityStats:
     def mean(self) -> torch.Tensor:
         return self.grad / self.count.clamp_min(1)
 
-    def keep(self, mask):
-        self.grad, self.count, self.max_radii = self.grad[mask], self.count[mask], self.max_radii[mask]
-
     def reset(self, n: int):
         dev = self.grad.device
         self.grad, self.count, self.max_radii = (torch.zeros(n, device=dev), torch.zeros(n, device=dev),

@@ -103,11 +103,11 @@ class GaussianAdam:
     Rows added by density control start with zero moments; pruned rows drop theirs, as in 3DGS.
     """
 
-    def __init__(self, gaussians: Gaussians, lrs: dict[str, float], extra_groups: list[dict] | None = None):
+    def __init__(self, gaussians: Gaussians, lrs: dict[str, float]):
         self.g = gaussians
         groups = [{"params": [gaussians.t[k]], "lr": lrs[k], "name": k} for k in PER_GAUSSIAN if k in lrs]
         self.names = [grp["name"] for grp in groups]
-        self.opt = torch.optim.Adam(groups + list(extra_groups or []), lr=0.0, eps=1e-15)
+        self.opt = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
     def set_lr(self, name: str, lr: float) -> None:
         for grp in self.opt.param_groups:

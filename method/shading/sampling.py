@@ -57,15 +57,6 @@ def to_world(local: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
             + local[..., 2:3] * normals[..., None, :])
 
 
-def hemisphere_lattice(n: int, cosine: bool = True, device=None, dtype=torch.float32) -> torch.Tensor:
-    """(n, 3) local hemisphere directions, cosine-weighted or uniform in solid angle."""
-    t, a = lattice(n, device, dtype)
-    z = torch.sqrt(1.0 - t) if cosine else 1.0 - t
-    r = torch.sqrt((1.0 - z * z).clamp_min(0.0))
-    phi = 2.0 * math.pi * a
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
-
-
 def _rotation(P: int, generator, rotation, normals) -> torch.Tensor:
     if rotation is not None:
         return rotation.reshape(P, 1).to(normals.dtype)

@@ -385,7 +385,12 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
         ray = torch.cat([p[0] + i * ray_chunk for i, p in enumerate(parts)]) if parts else tmin.new_zeros(0).long()
         splat = torch.cat([p[1] for p in parts]) if parts else ray
         alpha = None if compiled else (torch.cat([p[2] for p in parts]) if parts else tmin[:0])
-    if compiled or (torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales, opacities))):
+    # the torch traversal's alphas use the opacities the grid was built with: reused only when those are the
+    # opacities given (a grid kept while opacities are fine-tuned, as stage 2 does, selects the hits, and
+    # the alphas come from the current opacities, as with gradients or the compiled traversal)
+    stale = not compiled and not torch.equal(accel.splat_rows[:, 12], opacities.detach().to(accel.splat_rows))
+    if compiled or stale or (torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales,
+                                                                                       opacities))):
         # differentiable recomputation on the composited hits only (rays are treated as constants); the torch
         # traversal computed the same alphas with the same operations, so without gradients they are reused
         # (the compiled one works in float64 and returns no alphas: they are computed here)

@@ -1,0 +1,173 @@
+"""The training loop shared by both stages (method/train.py) and the run record (method/run_record.py):
+stage-2 resume equal to an uninterrupted run, and runs that cannot be mixed up silently (another scene,
+light or seed; two processes in one directory; a resume with other settings; bad iteration counts)."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from lumibench.errors import UserError
+
+TINY = ["stage1.iterations=12", "stage1.init_points=300", "stage1.max_gaussians=0", "stage1.warmup=4",
+        "stage1.densify_from=100", "stage1.eval_every=0", "stage1.checkpoint_every=6",
+        "stage2.iterations=8", "stage2.checkpoint_every=4", "stage2.log_every=2", "stage2.dirs_train=8",
+        "stage2.dirs_eval=8", "stage2.rays_per_iteration=512"]
+
+
+def _cfg(extra=()):
+    from method.config import load_method_config
+
+    return load_method_config("ci", TINY + list(extra))
+
+
+@pytest.fixture(scope="module")
+def stage1_run(ci_dataset, tmp_path_factory):
+    from method.train import train_stage1
+
+    torch.set_num_threads(1)
+    run = tmp_path_factory.mktemp("loop") / "run"
+    train_stage1(ci_dataset, "city", run, _cfg(), seed=0, progress=False, write_outputs=False)
+    return run
+
+
+def _copy(src, dst):
+    shutil.copytree(src, dst)
+    (dst / ".lock").unlink(missing_ok=True)
+    return dst
+
+
+def test_stage2_resume_equals_an_uninterrupted_run(ci_dataset, stage1_run, tmp_path):
+    """Killed after its iteration-4 checkpoint and resumed, stage 2 ends with the same tensors as a run that
+    was not interrupted: the generator, the optimiser and the tracer grids (built from the opacities stage 2
+    started with, not from those of the iteration a frame is first drawn at) all come back the same."""
+    from method.checkpoints import checkpoint_paths, load_checkpoint
+    from method.train import train_stage2
+
+    torch.set_num_threads(1)
+    full = _copy(stage1_run, tmp_path / "full")
+    train_stage2(ci_dataset, "city", full, _cfg(), seed=0, progress=False)
+    assert [i for i, _ in checkpoint_paths(full, 2)] == [4, 8]
+    part = _copy(full, tmp_path / "part")
+    (part / "checkpoints" / "stage2_000008.pt").unlink()
+    (part / "metrics_stage2.json").unlink()
+    train_stage2(ci_dataset, "city", part, _cfg(), seed=0, resume=True, progress=False)
+    a = load_checkpoint(full / "checkpoints" / "stage2_000008.pt", "cpu")
+    b = load_checkpoint(part / "checkpoints" / "stage2_000008.pt", "cpu")
+    four = load_checkpoint(part / "checkpoints" / "stage2_000004.pt", "cpu")
+    assert not torch.equal(four["materials"]["albedo_logit"], a["materials"]["albedo_logit"])  # it trained on
+    for k in ("albedo_logit", "roughness_logit"):
+        assert torch.equal(a["materials"][k], b["materials"][k]), k
+    assert torch.equal(a["materials"]["env"]["log_radiance"], b["materials"]["env"]["log_radiance"])
+    for k in ("colour_logit", "opacity_logit"):
+        assert torch.equal(a["gaussians"][k], b["gaussians"][k]), k
+    # the resumed log holds each iteration once, in order
+    its = [json.loads(x)["iteration"] for x in (part / "log_stage2.jsonl").read_text().splitlines()]
+    assert its == sorted(set(its)) and its[-1] == 8
+
+
+def test_stage2_refuses_a_run_of_another_scene_light_or_seed(ci_dataset, stage1_run, tmp_path):
+    from method.train import train_stage2
+
+    run = _copy(stage1_run, tmp_path / "run")
+    with pytest.raises(UserError, match=r"seed 0.*seed 5"):
+        train_stage2(ci_dataset, "city", run, _cfg(), seed=5, progress=False)
+    with pytest.raises(UserError, match=r"light city.*light sunrise"):
+        train_stage2(ci_dataset, "sunrise", run, _cfg(), seed=0, progress=False)
+    static = ci_dataset.parent / f"{ci_dataset.name}_statictimestep0000"
+    with pytest.raises(UserError, match=f"scene_name {static.name}"):
+        train_stage2(static, "city", run, _cfg(), seed=0, progress=False)
+    assert not (run / "log_stage2.jsonl").exists()  # nothing was trained
+
+
+def test_predictions_refuse_a_run_of_another_seed(ci_dataset, stage1_run, tmp_path):
+    from method.predictions import write_predictions
+
+    run = _copy(stage1_run, tmp_path / "run")
+    with pytest.raises(UserError, match="seed 3"):
+        write_predictions(run, ci_dataset, "city", _cfg(), seed=3, albedo_from_colour=True)
+
+
+def test_resume_with_other_settings_is_refused_and_the_record_kept(ci_dataset, stage1_run, tmp_path):
+    from method.train import train_stage1
+
+    run = _copy(stage1_run, tmp_path / "run")
+    before = (run / "config.yaml").read_text()
+    with pytest.raises(UserError, match=r"stage1.iterations=12 \(this command: 20\)"):
+        train_stage1(ci_dataset, "city", run, _cfg(["stage1.iterations=20"]), seed=0, resume=True, progress=False)
+    assert (run / "config.yaml").read_text() == before
+    # the same settings resume (here: a finished run, nothing left to train) and keep the record as it was
+    train_stage1(ci_dataset, "city", run, _cfg(), seed=0, resume=True, progress=False, write_outputs=False)
+    assert (run / "config.yaml").read_text() == before
+
+
+def test_a_second_training_in_the_same_directory_is_refused(ci_dataset, stage1_run, tmp_path):
+    """While one process holds the run's lock, another is refused naming it; the lock dies with its holder."""
+    from method.run_record import RunLock
+    from method.train import train_stage2
+
+    run = _copy(stage1_run, tmp_path / "run")
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from pathlib import Path; from method.run_record import RunLock\n"
+        f"with RunLock(Path({str(run)!r})):\n    print('held', flush=True); time.sleep(60)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(UserError, match=f"in use by process {holder.pid}"):
+            train_stage2(ci_dataset, "city", run, _cfg(), seed=0, progress=False)
+    finally:
+        holder.kill()
+        holder.wait()
+    with RunLock(run):  # released by the kernel when the holder died
+        pass
+
+
+def test_run_dir_that_is_a_file_or_unwritable(ci_dataset, tmp_path):
+    from method.train import train_stage1
+
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(UserError, match="is a file"):
+        train_stage1(ci_dataset, "city", f, _cfg(), progress=False)
+    with pytest.raises(UserError, match="cannot write into the run directory"):
+        train_stage1(ci_dataset, "city", f / "run", _cfg(), progress=False)
+
+
+@pytest.mark.parametrize("key", ["stage1.iterations", "stage2.iterations"])
+def test_negative_iterations_are_refused(key):
+    from method.config import load_method_config
+
+    with pytest.raises(UserError, match=f"'{key}' must be >= 0"):
+        load_method_config("ci", [f"{key}=-5"])
+    zero = load_method_config("ci", [f"{key}=0"])  # 0: the profile's number
+    assert zero[key.split(".")[0]]["iterations"] > 0
+
+
+def test_static_flag_on_a_dynamic_scene_names_the_static_variant(ci_dataset, tmp_path, capsys):
+    from method.__main__ import main
+
+    rc = main(["train", "--scene", str(ci_dataset), "--static", "--run-dir", str(tmp_path / "r"), "--no-progress"])
+    assert rc != 0
+    err = capsys.readouterr().err
+    assert f"{ci_dataset.name}_statictimestep0000" in err and "Traceback" not in err
+
+
+def test_budget_variants_scale_every_schedule_point():
+    """Every setting that is a point in a stage's schedule is in ITERATION_KEYS, and an @0.5 variant halves
+    each (nonzero) one of them."""
+    from baselines_adapters.lumimotion import LumiMotionAdapter
+    from method.config import ITERATION_KEYS, load_method_config, parse_overrides
+
+    cfg = load_method_config("small")
+    for stage in ("stage1", "stage2"):
+        named = {k for k in cfg[stage] if k in ("iterations", "warmup") or k.endswith(("_from", "_until"))}
+        assert named == set(ITERATION_KEYS[stage]), stage
+    half = parse_overrides(LumiMotionAdapter("lumimotion", "0.5").overrides("small"))
+    for stage, keys in ITERATION_KEYS.items():
+        for key in keys:
+            if cfg[stage][key] > 0:
+                assert half[stage][key] == max(1, round(cfg[stage][key] * 0.5)), (stage, key)
