@@ -12,6 +12,7 @@ from method import buffers, run_record
 from method.checkpoints import final_stage1, load_trained, scene_from_checkpoint
 from method.data import load_scene
 from method.model.materials import Materials
+from method.outputs import write_p_maps
 from method.shading.deferred import display, render_pbr_view
 from method.train import device_name
 
@@ -75,8 +76,6 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
         t = json.loads(tpath.read_text())
         timings = {k: t[k]["seconds"] for k in ("stage1", "stage2") if isinstance(t.get(k), dict)}
     if not scene.static and not (pred / "p_map" / "train").is_dir():
-        from method.outputs import write_p_maps
-
         write_p_maps(scene, load_scene(train_scene_dir, light, cfg["data"]["background"], dev), pred)
     n_params = scene.num_parameters() + (0 if albedo_from_colour else mats.num_parameters())
     write_meta(pred, {"method": method, "version": VERSION, "seed": int(seed), "device": device_name(dev),

@@ -112,7 +112,6 @@ def _albedo_psnr_aligned(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> 
 def stage2_metrics(scene, mats, data: SceneData, cfg: dict, gen) -> dict:
     """Training-view numbers: PSNR of the PBR render under the estimated map, aligned albedo PSNR."""
     from lumibench.groundtruth import read_gt
-    from method.losses import psnr
 
     views = data.train[:: max(1, len(data.train) // 4)][:4]
     env = mats.env().detach()
@@ -121,7 +120,7 @@ def stage2_metrics(scene, mats, data: SceneData, cfg: dict, gen) -> dict:
         r = render_pbr_view(scene, mats, v.camera, v.time, data.background, cfg, {"est": env},
                             cfg["stage2"]["dirs_eval"], gen, indirect=cfg["stage2"]["indirect"])
         img = buffers.over_background(display(r["relit:est"]), r["alpha"], data.background)
-        pbr.append(psnr(img, v.rgb))
+        pbr.append(losses.psnr(img, v.rgb))
         gt_path = Path(data.root) / "albedo"
         if gt_path.is_dir():
             gt = read_gt(Path(data.root), "albedo", v.file_path)

@@ -31,6 +31,8 @@ from method import run_record
 from method.checkpoints import checkpoint_paths, latest_checkpoint, save_checkpoint
 from method.data import SceneData, load_scene
 from method.splat.backend import resolve as resolve_backend
+from method.stage1 import Stage1
+from method.stage2 import Stage2
 
 
 class TrainingDiverged(UserError):
@@ -202,8 +204,6 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                  device: str = "cpu", static: bool | None = None, resume: bool = False, progress: bool = True,
                  write_outputs: bool = True) -> dict:
     """Train stage 1 into ``run_dir``; return the metrics dict (also in metrics_stage1.json)."""
-    from method.stage1 import Stage1
-
     dev = check_device(device)
     data = load_scene(scene_dir, light, cfg["data"]["background"], dev)
     static = data.static if static is None else static
@@ -217,8 +217,6 @@ def train_stage2(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                  device: str = "cpu", resume: bool = False, progress: bool = True,
                  data: SceneData | None = None) -> dict:
     """Train stage 2 on the run's finished stage 1; return the metrics dict (also in metrics_stage2.json)."""
-    from method.stage2 import Stage2
-
     dev = check_device(device)
     data = data or load_scene(scene_dir, light, cfg["data"]["background"], dev)
     stage = Stage2(data, cfg, Path(run_dir), device=dev)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import torch
 
+from method.splat.splats import quat_to_rotmat
+
 from .gaussians import GaussianAdam, Gaussians, inverse_sigmoid
 
 
@@ -73,7 +75,6 @@ def densify_and_prune(g: Gaussians, opt: GaussianAdam, stats: DensityStats, *, g
     # split: two samples inside the splat's disc, scales shrunk by 1.6 (3DGS's 0.8 * 2)
     if split_idx.numel():
         rows = _rows(g, split_idx)
-        from method.splat.splats import quat_to_rotmat
 
         rot = quat_to_rotmat(rows["quats"])
         s = torch.exp(rows["log_scales"])

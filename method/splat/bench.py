@@ -110,7 +110,7 @@ def make_trace_queries(means, quats, scales, n_points: int, n_dirs: int, seed: i
     return origins, d.reshape(-1, 3)
 
 
-def _sync(dev):
+def sync(dev):
     if dev.type == "cuda":
         torch.cuda.synchronize()
 
@@ -136,12 +136,12 @@ def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_si
     for i in range(warmup + repeats):
         for p in params:
             p.grad = None
-        _sync(torch.device(device))
+        sync(torch.device(device))
         t0 = time.perf_counter()
         c0 = time.process_time()
         out = rasterize(*params, cam, background=torch.ones(3, device=device))
         raster_loss(out).backward()
-        _sync(torch.device(device))
+        sync(torch.device(device))
         if i >= warmup:
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
@@ -169,14 +169,14 @@ def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup:
         cell = cell_factor * float((k * scales.max(1).values).median())
     build, query, cpu = [], [], []
     for i in range(warmup + repeats):
-        _sync(torch.device(device))
+        sync(torch.device(device))
         t0 = time.perf_counter()
         c0 = time.process_time()
         accel = TraceAccel.build(means, quats, scales, opac, cell_size=cell)
-        _sync(torch.device(device))
+        sync(torch.device(device))
         t1 = time.perf_counter()
         trans, _ = trace(means, quats, scales, opac, feats, origins, dirs, 0.0, accel=accel)
-        _sync(torch.device(device))
+        sync(torch.device(device))
         t2 = time.perf_counter()
         if i >= warmup:
             build.append(t1 - t0)

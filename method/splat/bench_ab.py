@@ -16,7 +16,7 @@ import torch
 
 from . import rasterize as R
 from . import segments as S
-from .bench import _sync as _sync_device, make_scene, raster_loss
+from .bench import make_scene, raster_loss, sync as _sync_device
 
 
 def _configure(device: str, cuda_choices: bool) -> None:

@@ -31,7 +31,7 @@ import torch
 from .backend import resolve
 from .camera import Camera
 from .composite import composite
-from .segments import Segments
+from .segments import Segments, gather_cols
 from .splats import check_splats, splat_frames
 
 ALPHA_MIN = 1.0 / 255.0
@@ -214,30 +214,6 @@ def _pair_alpha(g, x, y):
 class _NoCtx:
     def save_for_backward(self, *args):
         pass
-
-
-class _GatherCols(torch.autograd.Function):
-    """Columns ``idx`` of a (K, N) tensor -> (K, len(idx)). Forward as K 1-D index_selects (3x faster
-    on CPU than one torch.gather), backward as one (K, N) scatter-add."""
-
-    @staticmethod
-    def forward(ctx, mat, idx):
-        ctx.save_for_backward(idx)
-        ctx.n = mat.shape[1]
-        return torch.stack([row.index_select(0, idx) for row in mat.unbind(0)], 0)
-
-    @staticmethod
-    def backward(ctx, grad):
-        (idx,) = ctx.saved_tensors
-        out = grad.new_zeros((grad.shape[0], ctx.n))
-        return out.scatter_add_(1, idx[None, :].expand_as(grad), grad), None
-
-
-def _gather_cols(mat: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    mat = mat.contiguous()
-    if torch.is_grad_enabled() and mat.requires_grad:
-        return _GatherCols.apply(mat, idx)
-    return torch.stack([row.index_select(0, idx) for row in mat.unbind(0)], 0)
 
 
 def _pack_rows(proj, opacities):
@@ -429,12 +405,12 @@ def _composite_torch(proj, opacities, features, cam: Camera, near, screen_offset
     rows = _pack_rows(proj, opacities)
     if screen_offsets is not None:
         rows = _shift_rows(rows, screen_offsets)
-    g = _gather_cols(rows.T, sid)
+    g = gather_cols(rows.T, sid)
     px = (pix % W).to(dt) + (0.5 - cam.cx)  # centred pixel coordinates
     py = torch.div(pix, W, rounding_mode="floor").to(dt) + (0.5 - cam.cy)
     with torch.profiler.record_function("splat:pair_alpha"):
         alpha, depth = _pair_alpha(g, px, py)
-    attrs = _gather_cols(torch.cat([features, proj["normal"]], 1).T, sid).T
+    attrs = gather_cols(torch.cat([features, proj["normal"]], 1).T, sid).T
     with torch.profiler.record_function("splat:composite"):
         acc, dsum, dist, log_t, trans = composite(alpha, depth, attrs, segs, m_scale, m_near)
     with torch.no_grad():

@@ -55,3 +55,28 @@ class Segments:
     def gather(self, per_segment: torch.Tensor) -> torch.Tensor:
         """Broadcast per-segment values back to the elements."""
         return per_segment.index_select(0, self.seg)
+
+
+class _GatherCols(torch.autograd.Function):
+    """Columns ``idx`` of a (K, N) tensor -> (K, len(idx)). Forward as K 1-D index_selects (3x faster
+    on CPU than one torch.gather), backward as one (K, N) scatter-add."""
+
+    @staticmethod
+    def forward(ctx, mat, idx):
+        ctx.save_for_backward(idx)
+        ctx.n = mat.shape[1]
+        return torch.stack([row.index_select(0, idx) for row in mat.unbind(0)], 0)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (idx,) = ctx.saved_tensors
+        out = grad.new_zeros((grad.shape[0], ctx.n))
+        return out.scatter_add_(1, idx[None, :].expand_as(grad), grad), None
+
+
+def gather_cols(mat: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Columns ``idx`` of a (K, N) matrix: per-pair attributes gathered from per-splat rows (_GatherCols)."""
+    mat = mat.contiguous()
+    if torch.is_grad_enabled() and mat.requires_grad:
+        return _GatherCols.apply(mat, idx)
+    return torch.stack([row.index_select(0, idx) for row in mat.unbind(0)], 0)

@@ -26,8 +26,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .backend import resolve
-from .rasterize import _gather_cols
-from .segments import Segments
+from .segments import Segments, gather_cols
 from .splats import check_splats, splat_frames
 
 
@@ -394,7 +393,7 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
         # differentiable recomputation on the composited hits only (rays are treated as constants); the torch
         # traversal computed the same alphas with the same operations, so without gradients they are reused
         # (the compiled one works in float64 and returns no alphas: they are computed here)
-        q = _gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T,
+        q = gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T,
                          splat)
         oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()
         ox, oy, oz = _cols(oT, ray)
@@ -412,5 +411,5 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
     transmittance = torch.exp(segs.sum(la))
     if features is None:
         return transmittance, None
-    out = segs.sum(((alpha * trans_before)[None, :] * _gather_cols(features.T, splat)).T)
+    out = segs.sum(((alpha * trans_before)[None, :] * gather_cols(features.T, splat)).T)
     return transmittance, out
