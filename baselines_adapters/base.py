@@ -56,8 +56,8 @@ class MethodAdapter(abc.ABC):
 def save(out_dir: Path, kind: str, stem: str, image: np.ndarray, light: str | None = None,
          fmt: str = "png") -> Path:
     """Write one prediction image where the predictions layout expects it (atomically)."""
-    if kind == "relight":
-        folder = out_dir / "relight" / str(light)
+    if kind in ("relight", "relight_scaled"):
+        folder = out_dir / kind / str(light)
     elif kind == "p_map":
         folder = out_dir / "p_map" / "train"
     elif kind == "envmap":  # stem is the light's name

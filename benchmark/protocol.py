@@ -6,7 +6,11 @@ PSNRs, LPIPS is fed images in [0, 1] as they are. ``strict`` scores only the for
 PSNR and SSIM are averaged over foreground pixels, LPIPS sees both images with the background set to
 black and is fed [-1, 1] as LPIPS was trained. Both protocols share the rest: albedo aligned by a
 per-channel median ratio in linear space over the foreground of all test views, roughness MSE over the
-foreground, relight scored with no per-image rescaling.
+foreground, relight scored with no per-image rescaling. Relight under ``lumimotion`` is the method's
+relight with its albedo scaled per channel by that same ratio before shading (the authors'
+scale_albedo_dynamic.py + base_color_scale; IRGS does the same), when the method provides one
+(``relight_scaled/``); under ``strict`` the relight as the method predicts it, so a method that gets the
+albedo's scale right itself shows it.
 """
 from __future__ import annotations
 
@@ -26,6 +30,7 @@ class Protocol:
     masked_full_image: bool
     psnr_per_channel: bool
     lpips_input_range: str
+    relight_albedo_scaled: bool  # score relight_scaled/ (the albedo scaled before shading) when present
 
     def describe(self) -> str:
         if self.masked_full_image:
@@ -54,8 +59,10 @@ class Protocol:
 
 
 PROTOCOLS = {
-    "lumimotion": Protocol("lumimotion", masked_full_image=True, psnr_per_channel=True, lpips_input_range="[0,1]"),
-    "strict": Protocol("strict", masked_full_image=False, psnr_per_channel=False, lpips_input_range="[-1,1]"),
+    "lumimotion": Protocol("lumimotion", masked_full_image=True, psnr_per_channel=True, lpips_input_range="[0,1]",
+                           relight_albedo_scaled=True),
+    "strict": Protocol("strict", masked_full_image=False, psnr_per_channel=False, lpips_input_range="[-1,1]",
+                       relight_albedo_scaled=False),
 }
 
 

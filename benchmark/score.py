@@ -111,6 +111,10 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
 
     kinds = {k: pred.has(k) for k in ("nvs", "albedo", "roughness", "normal")}
     kinds["relight"] = pred.has("relight", test_light)
+    # the lumimotion protocol scores the relight made with the aligned albedo where the method provides it
+    relight_kind = ("relight_scaled" if proto.relight_albedo_scaled and pred.has("relight_scaled", test_light)
+                    else "relight")
+    kinds["relight"] = kinds["relight"] or relight_kind == "relight_scaled"
     relit = sorted(p.name for p in (Path(pred_dir) / "relight").glob("*") if p.is_dir())
     if relit and not kinds["relight"]:
         raise UserError(f"missing predictions {Path(pred_dir) / 'relight' / test_light}/: the method relit "
@@ -123,7 +127,10 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
     for kind, present in kinds.items():
         if present:
             for frame in frames:
-                pred.path(kind, frame.stem, test_light if kind == "relight" else None)
+                if kind == "relight":
+                    pred.path(relight_kind, frame.stem, test_light)
+                else:
+                    pred.path(kind, frame.stem)
 
     per_image: dict[str, dict[str, dict[str, float]]] = {k: {} for k in ("nvs", "albedo", "roughness", "relight", "normal")}
     albedo_pred, albedo_gt, albedo_mask, albedo_stems = [], [], [], []
@@ -136,8 +143,8 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
             per_image["nvs"][stem] = proto.score_rgb(pred.read("nvs", stem, shape), gt_train, alpha, lpips_net)
         if kinds["relight"]:
             gt_test, _ = read_lit(scene, test_light, fp)
-            per_image["relight"][stem] = proto.score_rgb(pred.read("relight", stem, shape, test_light), gt_test, alpha,
-                                                         lpips_net)
+            per_image["relight"][stem] = proto.score_rgb(pred.read(relight_kind, stem, shape, test_light), gt_test,
+                                                         alpha, lpips_net)
         if kinds["roughness"]:
             gt_r = read_gt(scene, "roughness", fp)
             per_image["roughness"][stem] = {"mse": float(metrics.mse(pred.read("roughness", stem, shape), gt_r, mask=fg))}
@@ -166,6 +173,8 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
             result_metrics[task] = _summary(per_image[task])
     if scale is not None:
         result_metrics["albedo"]["scale"] = [float(s) for s in scale]
+    if relight_kind == "relight_scaled" and isinstance(meta.get("relight_albedo_scale"), list):
+        result_metrics["relight"]["albedo_scale"] = [float(s) for s in meta["relight_albedo_scale"]]
     if result_metrics["nvs"] and result_metrics["relight"]:
         db = result_metrics["nvs"]["psnr"] - result_metrics["relight"]["psnr"]
         result_metrics["delta_psnr"] = {"db": db, "percent": 100.0 * db / result_metrics["nvs"]["psnr"]}
@@ -193,6 +202,8 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
             "ssim": SSIM_DESCRIPTION,
             "lpips_weights": dict(weights),
             "albedo_alignment": "per-channel median ratio, linear space, foreground of all test views",
+            "relight_albedo": ("scaled per channel by the albedo alignment before shading (relight_scaled/)"
+                               if relight_kind == "relight_scaled" else "as predicted (relight/)"),
         },
         "inputs": {"scene_dir": str(scene.resolve()), "pred_dir": str(Path(pred_dir).resolve()),
                    **dataset_inputs(scene)},

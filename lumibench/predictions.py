@@ -13,6 +13,10 @@ One folder per (method, scene, train light, seed); file stems are those of the s
       roughness/r_NNNN.<ext>         roughness in [0, 1] (one channel; extra channels ignored)
       normal/r_NNNN.<ext>            world-space normal (optional; PNG stores (n + 1) / 2, float stores n)
       relight/<test light>/r_NNNN.<ext>   RGB of the test view relit under each test light
+      relight_scaled/<test light>/r_NNNN.<ext>   optional: the same relit with the albedo scaled per channel
+                                     before shading by the benchmark's albedo alignment (the authors' rule:
+                                     median GT / predicted linear albedo over the foreground of all test
+                                     views); scored instead of relight/ under the `lumimotion` protocol
       p_map/train/r_NNNN.<ext>       optional: per-pixel dynamic probability P in [0, 1] of train views
       envmap/<train light>.<ext>     optional: the estimated environment map (linear, equirectangular)
 
@@ -29,7 +33,8 @@ view are errors, never skipped.
 
     {"method": str, "version": str, "seed": int, "device": str,
      "timings": {"<stage>": seconds, ...}, "iterations_per_s": float, "peak_memory_bytes": int,
-     "model_size": {"gaussians": int, "parameters": int, "bytes": int}}
+     "model_size": {"gaussians": int, "parameters": int, "bytes": int},
+     "relight_albedo_scale": [r, g, b]}   (with relight_scaled/: the per-channel scale it used)
 
 Only ``method``, ``version`` and ``seed`` are required; every other key is reported when present.
 """
@@ -45,11 +50,12 @@ from lumibench.color import linear_to_srgb, srgb_to_linear
 from lumibench.errors import UserError
 from lumibench.io import atomic_write_json, read_image, read_json
 
-KINDS = ("nvs", "albedo", "roughness", "normal", "relight", "p_map", "envmap")
+KINDS = ("nvs", "albedo", "roughness", "normal", "relight", "relight_scaled", "p_map", "envmap")
 EXTENSIONS = (".png", ".exr", ".npz")  # any letter case; nothing else is read (no lossy JPEG)
 ENVMAP_EXTENSIONS = (".hdr", ".exr", ".npz", ".png")
 # kinds whose PNG is display-encoded while float files are linear
-COLOUR_KINDS = ("nvs", "albedo", "relight")
+COLOUR_KINDS = ("nvs", "albedo", "relight", "relight_scaled")
+RELIGHT_KINDS = ("relight", "relight_scaled")  # one folder per test light
 
 
 def srgb_encode(x: np.ndarray) -> np.ndarray:
@@ -100,8 +106,8 @@ class PredictionFolder:
         return meta
 
     def kind_dir(self, kind: str, light: str | None = None) -> Path:
-        if kind == "relight":
-            return Path(self.root) / "relight" / str(light)
+        if kind in RELIGHT_KINDS:
+            return Path(self.root) / kind / str(light)
         if kind == "p_map":
             return Path(self.root) / "p_map" / "train"
         return Path(self.root) / kind
@@ -111,7 +117,8 @@ class PredictionFolder:
         format it does not read (``.jpg``, ``.npy``, ...) in any kind folder. Hidden files are ignored."""
         root = Path(self.root)
         folders = [root / k for k in ("nvs", "albedo", "roughness", "normal")]
-        for parent, what in ((root / "relight", "a folder per test light"), (root / "p_map", "train/")):
+        for parent, what in ((root / "relight", "a folder per test light"),
+                             (root / "relight_scaled", "a folder per test light"), (root / "p_map", "train/")):
             if not parent.is_dir():
                 continue
             entries = _visible(parent)
@@ -122,7 +129,7 @@ class PredictionFolder:
             if not entries:
                 raise UserError(f"empty predictions folder {parent}/: write the predictions into {what} "
                                 "or remove the folder")
-            folders += entries if parent.name == "relight" else [parent / "train"]
+            folders += entries if parent.name in RELIGHT_KINDS else [parent / "train"]
         for folder, exts in [(f, EXTENSIONS) for f in folders] + [(root / "envmap", ENVMAP_EXTENSIONS)]:
             if not folder.is_dir():
                 continue

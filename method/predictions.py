@@ -8,6 +8,10 @@ from pathlib import Path
 
 import torch
 
+from benchmark.align import albedo_scale
+from benchmark.protocol import foreground
+from lumibench.groundtruth import read_gt, read_lit
+from lumibench.predictions import PredictionFolder, srgb_decode
 from method import buffers, run_record
 from method.checkpoints import final_stage1, load_trained, scene_from_checkpoint
 from method.data import load_scene
@@ -16,7 +20,7 @@ from method.outputs import write_p_maps
 from method.shading.deferred import display, render_pbr_view
 from method.train import device_name
 
-VERSION = "1"
+VERSION = "2"  # 2: relight_scaled/ (the albedo scaled before shading, for the lumimotion protocol)
 
 
 def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, method: str = "lumimotion",
@@ -58,15 +62,22 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
     s2 = cfg["stage2"]
     from lumibench.progress import track
 
-    for v in track(data.test, description="predictions", unit="view", disable=not progress):
-        r = render_pbr_view(scene, mats, v.camera, v.time, data.background, cfg, envs, s2["dirs_eval"], gen)
+    for v in data.test:  # the maps first: the albedo scale of the relight below is measured on them
+        r = render_pbr_view(scene, mats, v.camera, v.time, data.background, cfg, {}, s2["dirs_eval"], gen)
         save(pred, "nvs", v.stem, r["nvs"].cpu().numpy())
         save(pred, "albedo", v.stem, display(r["albedo"]).cpu().numpy())
         save(pred, "roughness", v.stem, r["roughness"].cpu().numpy())
         save(pred, "normal", v.stem, (r["normal"] * 0.5 + 0.5).clamp(0, 1).cpu().numpy())
+    scale = relight_albedo_scale(pred, scene_dir, light, data.test) if lights else None
+    scale_t = None if scale is None else torch.tensor(scale, dtype=torch.float32, device=dev)
+    for v in track(data.test, description="predictions", unit="view", disable=not progress):
+        r = render_pbr_view(scene, mats, v.camera, v.time, data.background, cfg, envs, s2["dirs_eval"], gen,
+                            albedo_scale=scale_t)
         for x in lights:
-            img = buffers.over_background(display(r[f"relit:{x}"]), r["alpha"], data.background)
-            save(pred, "relight", v.stem, img.cpu().numpy(), x)
+            for tag, kind in (("relit", "relight"), ("relit_scaled", "relight_scaled")):
+                if f"{tag}:{x}" in r:
+                    img = buffers.over_background(display(r[f"{tag}:{x}"]), r["alpha"], data.background)
+                    save(pred, kind, v.stem, img.cpu().numpy(), x)
     if env_est is not None:
         (pred / "envmap").mkdir(parents=True, exist_ok=True)
         write_hdr(pred / "envmap" / f"{light}.hdr", env_est.cpu().numpy())
@@ -80,5 +91,23 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
     n_params = scene.num_parameters() + (0 if albedo_from_colour else mats.num_parameters())
     write_meta(pred, {"method": method, "version": VERSION, "seed": int(seed), "device": device_name(dev),
                       "scene": scene_dir.name, "train_light": light, "timings": timings,
-                      "model_size": {"gaussians": len(scene.g), "parameters": int(n_params)}})
+                      "model_size": {"gaussians": len(scene.g), "parameters": int(n_params)},
+                      **({"relight_albedo_scale": [float(c) for c in scale]} if scale is not None else {})})
     return pred
+
+
+def relight_albedo_scale(pred: Path, scene_dir: Path, light: str, views) -> list[float] | None:
+    """The per-channel scale the ``lumimotion`` protocol relights with: the benchmark's albedo alignment
+    (median of GT / predicted linear albedo over the GT foreground of all test views), measured on the
+    albedo predictions as written, exactly as the scorer will read them; None without GT albedo."""
+    if not (Path(scene_dir) / "albedo").is_dir():
+        return None
+    folder = PredictionFolder(pred)
+    preds, gts, masks = [], [], []
+    for v in views:
+        gt = read_gt(Path(scene_dir), "albedo", v.file_path)
+        _, alpha = read_lit(Path(scene_dir), light, v.file_path)
+        preds.append(srgb_decode(folder.read("albedo", v.stem, gt.shape[:2])))
+        gts.append(gt)
+        masks.append(foreground(alpha))
+    return [float(c) for c in albedo_scale(preds, gts, masks)]

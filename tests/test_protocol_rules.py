@@ -426,3 +426,31 @@ def test_psnr_cap(world, exact, protocol):
     want = _expected_images(world, protocol, nears, world.gt_train)["psnr"]
     assert 60.0 < want < 100.0  # finite and below the cap: not capped
     assert res["psnr"] == pytest.approx(want, abs=2e-4)
+
+
+def test_lumimotion_scores_the_relight_made_with_the_scaled_albedo_and_strict_the_plain_one(world, tmp_path):
+    """relight_scaled/ (the albedo scaled per channel before shading, the authors' rule) is what the
+    lumimotion protocol scores as relight; strict keeps relight/ as predicted; each says which it scored."""
+    import json
+    import shutil
+
+    pred = tmp_path / "pred"
+    shutil.copytree(world.pred, pred)
+    scaled = []
+    for v, stem in enumerate(STEMS):  # a different, closer relight: the tint mostly removed
+        g = world.gt_test[v]
+        p = np.where((world.alpha[v] == 0)[..., None], 0.0, g * np.array([0.99, 0.98, 0.97]))
+        write_png8(pred / "relight_scaled" / TEST / f"{stem}.png", p)
+        scaled.append(png8(p))
+    meta = json.loads((pred / "meta.json").read_text())
+    (pred / "meta.json").write_text(json.dumps({**meta, "relight_albedo_scale": [1.1, 1.0, 0.9]}))
+    lm = score(world.scene, pred, TRAIN, TEST, protocol="lumimotion")
+    st = score(world.scene, pred, TRAIN, TEST, protocol="strict")
+    _check(lm["metrics"]["relight"], _expected_images(world, "lumimotion", scaled, world.gt_test))
+    _check(st["metrics"]["relight"], world.results["strict"]["metrics"]["relight"])
+    assert lm["metrics"]["relight"]["psnr"] > world.results["lumimotion"]["metrics"]["relight"]["psnr"] + 3
+    assert lm["metrics"]["relight"]["albedo_scale"] == [1.1, 1.0, 0.9]
+    assert "relight_scaled" in lm["metric_config"]["relight_albedo"]
+    assert "as predicted" in st["metric_config"]["relight_albedo"]
+    # delta PSNR follows the relight that was scored
+    assert lm["metrics"]["delta_psnr"]["db"] == pytest.approx(lm["metrics"]["nvs"]["psnr"] - lm["metrics"]["relight"]["psnr"])

@@ -71,12 +71,16 @@ def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor:
 
 
 def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict, env: torch.Tensor,
-                 n_dirs: int, generator: torch.Generator, tracer: GaussianTracer | None, sampling_env=None):
+                 n_dirs: int, generator: torch.Generator, tracer: GaussianTracer | None, sampling_env=None,
+                 albedo_scale: torch.Tensor | None = None):
     """Linear RGB of the pixels ``pix`` (flat ids) shaded under ``env``; also their albedo (linear) and
-    roughness. ``s2``: the stage-2 settings (albedo clamp, normal lift, env quadrature)."""
+    roughness. ``s2``: the stage-2 settings (albedo clamp, normal lift, env quadrature). ``albedo_scale``
+    (3,): the linear albedo multiplied per channel (and kept in [0, 1]) before shading."""
     a = out.alpha.reshape(-1)[pix]
     f = out.features.reshape(-1, out.features.shape[-1])[pix]
     albedo = srgb_to_linear(buffers.channel(f, a, MATERIALS.albedo)).clamp(s2["albedo_min"], s2["albedo_max"])
+    if albedo_scale is not None:
+        albedo = (albedo * albedo_scale.to(albedo)).clamp(0.0, 1.0)
     rough = buffers.channel(f, a, MATERIALS.roughness)
     n = buffers.unit(out.normal.reshape(-1, 3)[pix])
     pts, view = surface_points(out, camera, pix)
@@ -92,10 +96,12 @@ def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict,
 @torch.no_grad()
 def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: float, background: torch.Tensor,
                     cfg: dict, envs: dict[str, torch.Tensor], n_dirs: int, generator: torch.Generator,
-                    accel: TraceAccel | None = None, indirect: bool = False) -> dict:
+                    accel: TraceAccel | None = None, indirect: bool = False,
+                    albedo_scale: torch.Tensor | None = None) -> dict:
     """Full-image maps of one view: NVS colour, albedo (linear), roughness, normal, alpha, P, and the
     relit linear RGB under each env map of ``envs`` (visibility traced; indirect light off by default,
-    since the stage-1 colours carry the training light)."""
+    since the stage-1 colours carry the training light); with ``albedo_scale`` (3,) also ``relit_scaled:``
+    each map, shaded with the albedo scaled per channel (the same directions and traversals)."""
     s2 = cfg["stage2"]
     d = scene.deform(t, p_mode="inference")
     out = raster_materials(d, mats, camera, background)
@@ -112,15 +118,18 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
         # one direction set for every map (env samples drawn from the maps' mixture), so the traversals of
         # the first map are replayed for the others instead of traced again
         tracer = tracer_for(d, acc, s2["trace_offset"] * scene.extent, indirect, extent=scene.extent,
-                            replay=len(envs) > 1)
+                            replay=len(envs) > 1 or albedo_scale is not None)
         start = generator.get_state()
         same_size = len({tuple(e.shape) for e in envs.values()}) == 1
         mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 and same_size else None
-        for name, env in envs.items():
-            generator.set_state(start)
-            tracer.rewind()
-            rgb, _, _ = shade_pixels(out, camera, fg, s2, env.to(a), n_dirs, generator, tracer, sampling_env=mixture)
-            img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=rgb.device)
-            img[fg] = rgb
-            res[f"relit:{name}"] = img.reshape(H, W, 3)
+        passes = [("relit", None)] + ([("relit_scaled", albedo_scale)] if albedo_scale is not None else [])
+        for tag, scale in passes:
+            for name, env in envs.items():
+                generator.set_state(start)
+                tracer.rewind()
+                rgb, _, _ = shade_pixels(out, camera, fg, s2, env.to(a), n_dirs, generator, tracer,
+                                         sampling_env=mixture, albedo_scale=scale)
+                img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=rgb.device)
+                img[fg] = rgb
+                res[f"{tag}:{name}"] = img.reshape(H, W, 3)
     return res
