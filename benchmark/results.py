@@ -11,7 +11,8 @@ malformed file is refused with a message naming the file and the field rather th
      "metrics": {"nvs": {psnr, ssim, lpips} | null, "albedo": {psnr, ssim, lpips, scale[3]} | null,
                  "roughness": {mse} | null, "relight": {psnr, ssim, lpips} | null,
                  "delta_psnr": {db, percent} | null, "separation": {iou, balanced_accuracy} | null,
-                 "normal": {mae_deg} | null},
+                 "normal": {mae_deg} | null,
+                 "nvs_moving": {foreground_psnr, moving_psnr, gap_db, moving_pixels} | null},
      "per_image": {"<task>": {"r_NNNN": {metric: value}}},
      "timings": {"<stage>": seconds} | null, "iterations_per_s", "peak_memory_bytes", "device",
      "model_size": {"gaussians", "parameters", "bytes"} | null, "created": ISO-8601 UTC}
@@ -36,6 +37,7 @@ TASK_METRICS = {
     "delta_psnr": ("db", "percent"),
     "separation": ("iou", "balanced_accuracy"),
     "normal": ("mae_deg",),
+    "nvs_moving": ("foreground_psnr", "moving_psnr", "gap_db"),
 }
 _IDENTITY = (("method", str), ("adapter_version", str), ("scene", str), ("train_light", str),
              ("test_light", str), ("seed", int), ("protocol", str))

@@ -21,7 +21,7 @@ from lumibench.io import sha256_file
 
 from lumibench.groundtruth import read_gt, read_lit  # noqa: F401  (re-exported: older imports)
 from lumibench.predictions import PredictionFolder, srgb_decode, srgb_encode
-from .protocol import Protocol, foreground, get_protocol
+from .protocol import Protocol, cap_psnr, foreground, get_protocol
 from .results import SCHEMA_VERSION, now_iso, validate
 
 SSIM_DESCRIPTION = "Gaussian window 11, sigma 1.5, data range 1"
@@ -90,6 +90,17 @@ def _summary(rows: dict[str, dict[str, float]]) -> dict[str, float]:
     return {k: _mean(rows, k) for k in keys}
 
 
+def nvs_regions(region_sq: dict) -> dict[str, float]:
+    """NVS PSNR over the moving objects' pixels (the GT dynamic mask of the test views, foreground only)
+    beside the PSNR over all foreground pixels, both from the pooled squared error of all test views (the
+    same for either protocol): a moving object that is missing or blurred shows as a gap."""
+    def db(sq, n):
+        return cap_psnr(-10.0 * math.log10(max(sq / n, 1e-20)))
+    fgp, mov = db(*region_sq["foreground"]), db(*region_sq["moving"])
+    return {"foreground_psnr": fgp, "moving_psnr": mov, "gap_db": fgp - mov,
+            "moving_pixels": region_sq["moving"][1] // 3}
+
+
 def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_light: str,
           protocol: str | Protocol = "lumimotion", lpips_net: str = "vgg", profile: str | None = None,
           scene_name: str | None = None) -> dict[str, Any]:
@@ -134,13 +145,22 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
 
     per_image: dict[str, dict[str, dict[str, float]]] = {k: {} for k in ("nvs", "albedo", "roughness", "relight", "normal")}
     albedo_pred, albedo_gt, albedo_mask, albedo_stems = [], [], [], []
+    region_sq = {"foreground": [0.0, 0], "moving": [0.0, 0]}  # squared error sum, pixel count (NVS)
+    have_dyn = (scene / "dynamic_mask" / "test").is_dir()
     for frame in frames:
         stem, fp = frame.stem, frame.file_path
         gt_train, alpha = read_lit(scene, train_light, fp)
         shape = gt_train.shape[:2]
         fg = foreground(alpha)
         if kinds["nvs"]:
-            per_image["nvs"][stem] = proto.score_rgb(pred.read("nvs", stem, shape), gt_train, alpha, lpips_net)
+            nvs_img = pred.read("nvs", stem, shape)
+            per_image["nvs"][stem] = proto.score_rgb(nvs_img, gt_train, alpha, lpips_net)
+            if have_dyn:
+                moving = (read_gt(scene, "dynamic_mask", fp)[..., 0] > 0.5) & (fg[..., 0] > 0)
+                for region, m in (("foreground", fg[..., 0] > 0), ("moving", moving)):
+                    err = (np.asarray(nvs_img, np.float64) - np.asarray(gt_train, np.float64))[m]
+                    region_sq[region][0] += float((err ** 2).sum())
+                    region_sq[region][1] += int(err.size)
         if kinds["relight"]:
             gt_test, _ = read_lit(scene, test_light, fp)
             per_image["relight"][stem] = proto.score_rgb(pred.read(relight_kind, stem, shape, test_light), gt_test,
@@ -161,7 +181,7 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
             albedo_stems.append((stem, alpha))
 
     result_metrics: dict[str, Any] = {k: None for k in ("nvs", "albedo", "roughness", "relight", "delta_psnr",
-                                                         "separation", "normal")}
+                                                         "separation", "normal", "nvs_moving")}
     scale = None
     if kinds["albedo"]:
         scale = np.asarray(align.albedo_scale(albedo_pred, albedo_gt, albedo_mask), dtype=np.float64).reshape(3)
@@ -180,6 +200,8 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
         result_metrics["delta_psnr"] = {"db": db, "percent": 100.0 * db / result_metrics["nvs"]["psnr"]}
     if pred.has("p_map"):
         result_metrics["separation"] = separation_score(scene, pred, train_light)
+    if region_sq["moving"][1] and region_sq["foreground"][1]:
+        result_metrics["nvs_moving"] = nvs_regions(region_sq)
 
     weights = metrics.lpips_weights_info(lpips_net)
     result: dict[str, Any] = {

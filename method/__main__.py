@@ -9,10 +9,11 @@ from lumibench.cli import build_main
 
 main = build_main(
     "python -m method",
-    "LumiMotion: relightable dynamic 2D Gaussian splatting (train, relight).",
+    "LumiMotion: relightable dynamic 2D Gaussian splatting (train, relight, diagnose).",
     {
         "train": "method.commands.train",
         "relight": "method.commands.relight",
+        "diagnose": "method.commands.diagnose",
         "demo": "method.commands.demo",
     },
 )

@@ -97,11 +97,11 @@ def write_test_renders(scene: DynamicScene, data: SceneData, out_dir: Path, tag:
         return renders, None
     sheet = np.concatenate(rows[:8], 0)
     path = out_dir.parent / f"sheet_{tag}.png"
-    _write_sheet(path, sheet, ["ground truth", "RGB", "normals", "depth", "P: static blue,\ndynamic orange"])
+    write_sheet(path, sheet, ["ground truth", "RGB", "normals", "depth", "P: static blue,\ndynamic orange"])
     return renders, path
 
 
-def _write_sheet(path: Path, sheet: np.ndarray, titles: list[str]) -> None:
+def write_sheet(path: Path, sheet: np.ndarray, titles: list[str]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")

@@ -166,3 +166,36 @@ def test_predictions_relight_with_the_albedo_scaled_as_the_benchmark_aligns_it(c
     r = render_pbr_view(scene, mats, v.camera, v.time, torch.ones(3), cfg, env, 8, torch.Generator().manual_seed(0),
                         albedo_scale=torch.ones(3))
     assert torch.equal(r["relit:sunrise"], r["relit_scaled:sunrise"])
+
+
+def test_diagnose_swaps_one_buffer_at_a_time_with_the_same_samples(ci_dataset, tiny_run, tmp_path, monkeypatch):
+    """`python -m method diagnose`: every step shades the same pixels with the same directions (a step that
+    swaps nothing equals "ours" exactly), and a swapped buffer is the one the step names."""
+    import json
+
+    import torch
+
+    import method.diagnose as dg
+    from method.__main__ import main
+
+    monkeypatch.setattr(dg, "STEPS", dg.STEPS + (("ours_again", ()),))
+    out = tmp_path / "diag"
+    assert main(["diagnose", "--run", str(tiny_run), "--test-light", "sunrise", "--views", "2", "--dirs", "8",
+                 "--out", str(out)]) == 0
+    rec = json.loads((out / "diagnose.json").read_text())
+    assert (out / "sheet.png").is_file() and rec["views"] == 2
+    steps = rec["per_view_psnr"]
+    assert steps["ours_again"] == steps["ours"]
+    assert steps["gt_albedo"] != steps["ours"] and steps["gt_all"] != steps["gt_albedo"]
+
+    real = dg._gt_buffers
+
+    def black_albedo(*args):
+        b = real(*args)
+        return {**b, "albedo": torch.zeros_like(b["albedo"])}
+
+    monkeypatch.setattr(dg, "_gt_buffers", black_albedo)
+    rec2 = dg.diagnose(tiny_run, "sunrise", views=2, dirs=8, out=tmp_path / "d2", progress=False)
+    assert rec2["per_view_psnr"]["gt_roughness"] == steps["gt_roughness"]  # only the albedo steps change
+    assert rec2["per_view_psnr"]["gt_albedo"] != steps["gt_albedo"]
+    assert rec2["per_view_psnr"]["gt_all"] != steps["gt_all"]

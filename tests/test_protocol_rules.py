@@ -454,3 +454,23 @@ def test_lumimotion_scores_the_relight_made_with_the_scaled_albedo_and_strict_th
     assert "as predicted" in st["metric_config"]["relight_albedo"]
     # delta PSNR follows the relight that was scored
     assert lm["metrics"]["delta_psnr"]["db"] == pytest.approx(lm["metrics"]["nvs"]["psnr"] - lm["metrics"]["relight"]["psnr"])
+
+
+def test_nvs_over_the_moving_objects_beside_the_foreground(world):
+    """nvs_moving: PSNR of the pooled squared error over the GT dynamic mask's foreground pixels of all test
+    views, beside the same over all foreground pixels, and their gap (a missing moving object shows)."""
+    sq = {"fg": [0.0, 0], "mov": [0.0, 0]}
+    for v, stem in enumerate(STEMS):
+        dyn = read_npz(world.scene / "dynamic_mask" / "test" / f"{stem}.npz")[..., 0] > 0.5
+        fg = _fg(world, v)
+        for key, m in (("fg", fg), ("mov", fg & dyn)):
+            e = (world.nvs[v] - world.gt_train[v])[m]
+            sq[key][0] += float((e ** 2).sum())
+            sq[key][1] += e.size
+    assert sq["mov"][1] > 0
+    for protocol in ("lumimotion", "strict"):
+        m = world.results[protocol]["metrics"]["nvs_moving"]
+        assert m["foreground_psnr"] == pytest.approx(psnr_db(sq["fg"][0] / sq["fg"][1]), abs=1e-6)
+        assert m["moving_psnr"] == pytest.approx(psnr_db(sq["mov"][0] / sq["mov"][1]), abs=1e-6)
+        assert m["gap_db"] == pytest.approx(m["foreground_psnr"] - m["moving_psnr"], abs=1e-9)
+        assert m["moving_pixels"] == sq["mov"][1] // 3

@@ -72,10 +72,12 @@ def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor:
 
 def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict, env: torch.Tensor,
                  n_dirs: int, generator: torch.Generator, tracer: GaussianTracer | None, sampling_env=None,
-                 albedo_scale: torch.Tensor | None = None):
+                 albedo_scale: torch.Tensor | None = None, override: dict | None = None):
     """Linear RGB of the pixels ``pix`` (flat ids) shaded under ``env``; also their albedo (linear) and
     roughness. ``s2``: the stage-2 settings (albedo clamp, normal lift, env quadrature). ``albedo_scale``
-    (3,): the linear albedo multiplied per channel (and kept in [0, 1]) before shading."""
+    (3,): the linear albedo multiplied per channel (and kept in [0, 1]) before shading. ``override``: any of
+    "albedo" (P, 3 linear), "roughness" (P,), "normal" (P, 3 unit) used instead of the rasterized buffer
+    (method/diagnose.py puts the ground truth there; the points and the visibility stay ours)."""
     a = out.alpha.reshape(-1)[pix]
     f = out.features.reshape(-1, out.features.shape[-1])[pix]
     albedo = srgb_to_linear(buffers.channel(f, a, MATERIALS.albedo)).clamp(s2["albedo_min"], s2["albedo_max"])
@@ -83,6 +85,10 @@ def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict,
         albedo = (albedo * albedo_scale.to(albedo)).clamp(0.0, 1.0)
     rough = buffers.channel(f, a, MATERIALS.roughness)
     n = buffers.unit(out.normal.reshape(-1, 3)[pix])
+    if override:
+        albedo = override.get("albedo", albedo)
+        rough = override.get("roughness", rough)
+        n = override.get("normal", n)
     pts, view = surface_points(out, camera, pix)
     if tracer is not None:
         pts = lifted_points(pts, n, view, float(s2["normal_offset"]) * tracer.extent)

@@ -1,0 +1,149 @@
+"""Where a run's relighting error is: the test views relit under a test light with one of our per-pixel
+buffers replaced by the ground truth at a time (albedo, roughness, normals), then all three, which leaves
+only our geometry (the shading points and the traced visibility) and the shading estimator.
+
+Every step shades the same pixels (our coverage > 0.5) with the same directions and traversals, so the
+differences between steps are the buffers', not Monte Carlo noise. "ours" is relit with the albedo scaled
+as the `lumimotion` protocol scales it (the benchmark's median-ratio alignment, computed here on our albedo
+over the ground truth's foreground); the ground-truth albedo is used as it is. Scored like the benchmark's
+relight (`lumimotion` protocol: masked full image, per-channel PSNR, LPIPS-VGG fed [0, 1]), under the
+training light's coverage of the test views, composited on the dataset's background.
+
+``python -m method diagnose --run RUN --test-light sunrise`` writes ``RUN/diagnose/<test light>/``:
+``diagnose.json`` (per step: mean PSNR, SSIM, LPIPS and the gain over "ours") and ``sheet.png``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmark.align import albedo_scale
+from benchmark.protocol import foreground, get_protocol
+from lumibench.color import srgb_to_linear
+from lumibench.errors import UserError
+from lumibench.groundtruth import read_gt, read_lit
+from lumibench.io import atomic_write_json
+from method import buffers
+from method.buffers import MATERIALS
+from method.checkpoints import load_trained
+from method.data import load_scene
+from method.relight import check_device, read_run_config, resolve_scene_dir
+from method.outputs import write_sheet
+from method.shading.deferred import accel_for, display, raster_materials, shade_pixels, tracer_for
+from method.shading.envmap import load_envmap
+
+STEPS = (("ours", ()), ("gt_albedo", ("albedo",)), ("gt_roughness", ("roughness",)), ("gt_normal", ("normal",)),
+         ("gt_all", ("albedo", "roughness", "normal")))
+
+
+def _gt_buffers(scene_dir: Path, file_path: str, pix: torch.Tensor, device) -> dict[str, torch.Tensor]:
+    """The ground truth's albedo (linear), roughness and unit world normal at flat pixel ids."""
+    out = {}
+    for kind in ("albedo", "roughness", "normal"):
+        x = torch.as_tensor(np.asarray(read_gt(scene_dir, kind, file_path), dtype=np.float32), device=device)
+        x = x.reshape(-1, x.shape[-1])[pix]
+        if kind == "roughness":
+            x = x[:, 0].clamp(0, 1)
+        elif kind == "normal":
+            x = x[:, :3] / x[:, :3].norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        else:
+            x = x[:, :3].clamp(0, 1)
+        out[kind] = x
+    return out
+
+
+def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.where(mask[:, None] if a.dim() == 2 else mask, a, b)
+
+
+@torch.no_grad()
+def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | None = None, device: str = "cpu",
+             seed: int = 0, data=None, out=None, progress: bool = True) -> dict:
+    """Relight the run's test views under ``test_light`` step by step (module docstring); returns the record."""
+    from lumibench.progress import track
+
+    run_dir = Path(run_dir)
+    cfg = read_run_config(run_dir)
+    ident = cfg.pop("run")
+    dev = check_device(device)
+    scene_dir = resolve_scene_dir(run_dir, ident, cfg.get("profile"), data)
+    if not (scene_dir / "albedo").is_dir():
+        raise UserError(f"{scene_dir} has no ground-truth buffers (albedo/, roughness/, normal/): the diagnostic "
+                        f"needs a LumiBench scene")
+    if dirs is not None and dirs < 1:
+        raise UserError(f"--dirs must be >= 1, got {dirs}")
+    env = load_envmap(test_light, scene_dir, height=None, width=None, device=dev)
+    scene, mats = load_trained(run_dir, cfg, dev)
+    sd = load_scene(scene_dir, ident["light"], cfg["data"]["background"], dev)
+    test = sd.test[:views] if views else sd.test
+    if not test:
+        raise UserError(f"{scene_dir} has no test views")
+    s2 = cfg["stage2"]
+    n_dirs = dirs or s2["dirs_eval"]
+    proto = get_protocol("lumimotion")
+    bg = sd.background
+
+    # the lumimotion protocol's albedo scale, on our albedo over the GT foreground of all test views
+    renders = []
+    preds, gts, masks = [], [], []
+    for v in test:
+        d = scene.deform(v.time, p_mode="inference")
+        r = raster_materials(d, mats, v.camera, bg)
+        renders.append((d, r))
+        a = r.alpha.clamp(0, 1)
+        preds.append(srgb_to_linear(buffers.channel(r.features, a, MATERIALS.albedo)).cpu().numpy())
+        gts.append(read_gt(scene_dir, "albedo", v.file_path))
+        masks.append(foreground(read_lit(scene_dir, ident["light"], v.file_path)[1]))
+    scale = torch.tensor(albedo_scale(preds, gts, masks), dtype=torch.float32, device=dev)
+
+    scores: dict[str, list[dict]] = {name: [] for name, _ in STEPS}
+    rows = []
+    gen = torch.Generator().manual_seed(seed)
+    for v, (d, r) in track(list(zip(test, renders)), description=f"diagnose {test_light}", unit="view",
+                           disable=not progress):
+        gt_img, gt_alpha = read_lit(scene_dir, test_light, v.file_path)
+        a = r.alpha.clamp(0, 1)
+        H, W = v.camera.height, v.camera.width
+        fg = torch.nonzero((a > 0.5).reshape(-1)).squeeze(1)
+        gt_fg = torch.as_tensor(gt_alpha[..., 0] > 0.5, device=dev).reshape(-1)[fg]
+        gtb = _gt_buffers(scene_dir, v.file_path, fg, dev)
+        f = r.features.reshape(-1, r.features.shape[-1])[fg]
+        af = a.reshape(-1)[fg]
+        a_lin = srgb_to_linear(buffers.channel(f, af, MATERIALS.albedo)).clamp(s2["albedo_min"], s2["albedo_max"])
+        mine = {"albedo": (a_lin * scale).clamp(0, 1), "roughness": buffers.channel(f, af, MATERIALS.roughness),
+                "normal": buffers.unit(r.normal.reshape(-1, 3)[fg])}
+        tracer = tracer_for(d, accel_for(d, s2["trace_cell"]), s2["trace_offset"] * scene.extent, False,
+                            extent=scene.extent, replay=True)
+        start = gen.get_state()
+        row = [buffers.over_background(gt_img, gt_alpha[..., 0], bg.cpu().numpy())]
+        for name, swap in STEPS:
+            gen.set_state(start)
+            tracer.rewind()
+            # each buffer is the GT's where the GT has a surface, ours where only our coverage reaches
+            override = {k: _where(gt_fg, gtb[k], mine[k]) if k in swap else mine[k] for k in mine}
+            rgb, _, _ = shade_pixels(r, v.camera, fg, s2, env, n_dirs, gen, tracer, override=override)
+            img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=dev)
+            img[fg] = rgb
+            img = buffers.over_background(display(img.reshape(H, W, 3)), a, bg).cpu().numpy()
+            scores[name].append(proto.score_rgb(img, gt_img, gt_alpha, "vgg"))
+            row.append(img)
+        rows.append(row)
+    summary = {}
+    for name, _ in STEPS:
+        mean = {k: float(np.mean([s[k] for s in scores[name]])) for k in ("psnr", "ssim", "lpips")}
+        summary[name] = mean
+    for name, _ in STEPS:
+        summary[name]["psnr_gain"] = summary[name]["psnr"] - summary["ours"]["psnr"]
+    record = {"run": str(run_dir), "scene": scene_dir.name, "train_light": ident["light"], "test_light": test_light,
+              "views": len(test), "dirs": n_dirs, "albedo_scale": [float(c) for c in scale],
+              "protocol": "lumimotion", "steps": summary,
+              "per_view_psnr": {name: [s["psnr"] for s in scores[name]] for name, _ in STEPS}}
+    out = Path(out) if out else run_dir / "diagnose" / test_light
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "diagnose.json", record)
+    sheet = np.concatenate([np.concatenate(r, 1) for r in rows[:4]], 0)
+    titles = ["GT " + test_light] + [f"{n}\n{summary[n]['psnr']:.2f} dB" for n, _ in STEPS]
+    write_sheet(out / "sheet.png", sheet, titles)
+    return record
