@@ -171,3 +171,17 @@ def test_budget_variants_scale_every_schedule_point():
         for key in keys:
             if cfg[stage][key] > 0:
                 assert half[stage][key] == max(1, round(cfg[stage][key] * 0.5)), (stage, key)
+
+
+def test_cli_stage2_with_resume_starts_stage2_and_refuses_other_settings(ci_dataset, stage1_run, tmp_path, capsys):
+    """`train --stage 2 --resume` on a run whose stage 1 is done starts stage 2; the same with a stage-1
+    setting other than the run's is one line naming it, not a traceback."""
+    from method.__main__ import main
+
+    run = _copy(stage1_run, tmp_path / "run")
+    base = ["train", "--scene", str(ci_dataset), "--run-dir", str(run), "--no-progress", "--stage", "2", "--resume"]
+    assert main(base + TINY + ["stage1.lr_p=0.5"]) != 0
+    err = capsys.readouterr().err
+    assert "stage1.lr_p" in err and "Traceback" not in err
+    assert main(base + TINY) == 0
+    assert (run / "metrics_stage2.json").is_file() and (run / "predictions" / "meta.json").is_file()

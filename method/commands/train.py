@@ -82,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
         _report_stage1(run_dir, metrics)
     if args.stage in ("2", "all"):
         m2 = train_stage2(scene_dir, args.light, run_dir, cfg, seed=args.seed, device=args.device,
-                          resume=args.resume or args.stage == "all" and bool(checkpoint_paths(run_dir, 2)),
+                          # --resume continues stage 2 where it has checkpoints, else starts it (a resumed
+                          # stage 1 goes on into stage 2); without --resume, `all` still picks up its own
+                          resume=(args.resume or args.stage == "all") and bool(checkpoint_paths(run_dir, 2)),
                           progress=not args.no_progress)
         print(f"stage 2:     PBR PSNR (train views) {m2['pbr_psnr']:.2f} dB"
               + (f"  albedo PSNR (aligned) {m2['albedo_psnr_aligned']:.2f} dB" if "albedo_psnr_aligned" in m2 else "")
