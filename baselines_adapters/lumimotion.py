@@ -124,7 +124,7 @@ class LumiMotionAdapter(MethodAdapter):
 
             shutil.copytree(pred, out_dir, dirs_exist_ok=True)
             (Path(out_dir) / "meta.json").unlink(missing_ok=True)
-        keep = {k: meta[k] for k in ("timings", "device", "model_size") if k in meta}
+        keep = {k: meta[k] for k in ("timings", "device", "model_size", "relight_albedo_scale") if k in meta}
         keep["run_dir"] = str(run_dir)
         return keep
 

@@ -1,6 +1,7 @@
 """Where a run's relighting error is: the test views relit under a test light with one of our per-pixel
 buffers replaced by the ground truth at a time (albedo, roughness, normals), then all three, which leaves
-only our geometry (the shading points and the traced visibility) and the shading estimator.
+only our geometry (the shading points and the traced visibility) and the shading estimator; and all three
+without our traced shadows (V = 1), which says whether the shadows our Gaussians cast help or hurt.
 
 Every step shades the same pixels (our coverage > 0.5) with the same directions and traversals, so the
 differences between steps are the buffers', not Monte Carlo noise. "ours" is relit with the albedo scaled
@@ -34,8 +35,11 @@ from method.outputs import write_sheet
 from method.shading.deferred import accel_for, display, raster_materials, shade_pixels, tracer_for
 from method.shading.envmap import load_envmap
 
+ALL = ("albedo", "roughness", "normal")
+# (name, buffers replaced by the ground truth); the last step also drops our traced shadows (V = 1): where it
+# beats gt_all, the shadows our Gaussians cast under the test light are worse than none
 STEPS = (("ours", ()), ("gt_albedo", ("albedo",)), ("gt_roughness", ("roughness",)), ("gt_normal", ("normal",)),
-         ("gt_all", ("albedo", "roughness", "normal")))
+         ("gt_all", ALL), ("gt_all_unshadowed", ALL + ("no_shadows",)))
 
 
 def _gt_buffers(scene_dir: Path, file_path: str, pix: torch.Tensor, device) -> dict[str, torch.Tensor]:
@@ -123,7 +127,8 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
             tracer.rewind()
             # each buffer is the GT's where the GT has a surface, ours where only our coverage reaches
             override = {k: _where(gt_fg, gtb[k], mine[k]) if k in swap else mine[k] for k in mine}
-            rgb, _, _ = shade_pixels(r, v.camera, fg, s2, env, n_dirs, gen, tracer, override=override)
+            rgb, _, _ = shade_pixels(r, v.camera, fg, s2, env, n_dirs, gen,
+                                     None if "no_shadows" in swap else tracer, override=override)
             img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=dev)
             img[fg] = rgb
             img = buffers.over_background(display(img.reshape(H, W, 3)), a, bg).cpu().numpy()

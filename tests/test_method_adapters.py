@@ -50,7 +50,11 @@ def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method):
     # P maps only where there is a deformation network; all lights but the train one are relit
     assert (out / "p_map" / "train").is_dir() == (method != "static")
     assert sorted(p.name for p in (out / "relight").iterdir()) == ["courtyard", "sunrise", "sunset"]
+    # and relit again with the albedo scaled as the benchmark aligns it (the lumimotion protocol's relight)
+    assert sorted(p.name for p in (out / "relight_scaled").iterdir()) == ["courtyard", "sunrise", "sunset"]
+    assert len(meta["relight_albedo_scale"]) == 3
     res = score(ci_dataset, out, "city", "sunrise")
+    assert res["metrics"]["relight"]["albedo_scale"] == meta["relight_albedo_scale"]
     for kind in ("albedo", "relight", "nvs"):
         assert np.isfinite(res["metrics"][kind]["psnr"]), kind
     assert res["metrics"]["roughness"]["mse"] >= 0
