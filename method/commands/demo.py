@@ -63,7 +63,10 @@ def demo_sheet(scene_dir: Path, pred: Path, train: str, test: str, path: Path) -
 
     pf = PredictionFolder(pred)
     frames = layout.read_transforms(scene_dir, "test").frames[:4]
-    cols = ["albedo GT", "albedo ours", "roughness GT", "roughness ours", f"{test} GT", f"{test} ours (relit)"]
+    # the relight the table's protocol (lumimotion) scores: with the albedo scaled as the benchmark aligns it
+    relit = "relight_scaled" if pf.has("relight_scaled", test) else "relight"
+    cols = ["albedo GT", "albedo ours", "roughness GT", "roughness ours", f"{test} GT",
+            f"{test} ours (relit)" + ("\nalbedo scaled" if relit == "relight_scaled" else "")]
     fig, axes = plt.subplots(len(frames) + 1, len(cols), figsize=(2 * len(cols), 2 * (len(frames) + 1)))
     for i, f in enumerate(frames):
         rgb, alpha = read_lit(scene_dir, test, f.file_path)
@@ -73,7 +76,7 @@ def demo_sheet(scene_dir: Path, pred: Path, train: str, test: str, path: Path) -
                 pf.read("albedo", f.stem, shape) * a,
                 np.repeat(read_gt(scene_dir, "roughness", f.file_path), 3, -1) * a,
                 np.repeat(pf.read("roughness", f.stem, shape), 3, -1) * a,
-                rgb * a, pf.read("relight", f.stem, shape, test) * a]
+                rgb * a, pf.read(relit, f.stem, shape, test) * a]
         for j, img in enumerate(imgs):
             axes[i, j].imshow(np.clip(img, 0, 1), interpolation="nearest")
             axes[i, j].set_axis_off()
