@@ -30,7 +30,8 @@ from method import buffers
 from method.buffers import MATERIALS
 from method.checkpoints import load_trained
 from method.data import load_scene
-from method.relight import check_device, read_run_config, resolve_scene_dir
+from method.devices import check_device
+from method.relight import read_run_config, resolve_scene_dir
 from method.outputs import write_sheet
 from method.shading.deferred import accel_for, display, raster_materials, shade_pixels, tracer_for
 from method.shading.envmap import load_envmap

@@ -18,7 +18,7 @@ from method.data import load_scene
 from method.model.materials import Materials
 from method.outputs import write_p_maps
 from method.shading.deferred import display, render_pbr_view
-from method.train import device_name
+from method.devices import device_name
 
 VERSION = "2"  # 2: relight_scaled/ (the albedo scaled before shading, for the lumimotion protocol)
 

@@ -13,6 +13,7 @@ import yaml
 
 from lumibench.errors import UserError
 from lumibench.io import atomic_path, write_png
+from method.devices import check_device
 from method.splat.camera import Camera
 
 
@@ -50,28 +51,6 @@ def orbit_cameras(test_cameras: list[Camera], center: torch.Tensor, n: int) -> l
 OUTPUT_KINDS = {"albedo": (".png", ".npz"), "roughness": (".png",), "normal": (".png",), "relit": (".png",)}
 OUTPUT_FILES = ("envmap_estimated.hdr", "envmap_estimated_clipped.png", "envmap_estimated_scaled.png",
                 "envmap_given_scaled.png", "relit_orbit.gif")
-
-
-def check_device(device: str) -> torch.device:
-    """--device as a torch.device that exists here, else a one-line error (checked before anything loads,
-    so a missing GPU is not reported as an unreadable checkpoint)."""
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError, ValueError):
-        raise UserError(f"--device {device!r} is not a device name torch knows (use cpu, cuda or cuda:N)") from None
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise UserError(f"--device {device} asked for, but this torch has no CUDA device (use --device cpu)")
-        n = torch.cuda.device_count()
-        if dev.index is not None and dev.index >= n:
-            raise UserError(f"--device {device} asked for, but this machine has {n} CUDA device(s) "
-                            f"(use cuda:0..cuda:{n - 1} or cpu)")
-    elif dev.type == "mps":
-        if not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
-            raise UserError(f"--device {device} asked for, but this torch has no MPS device (use --device cpu)")
-    elif dev.type != "cpu":
-        raise UserError(f"--device {device}: unsupported device type '{dev.type}' (use cpu or cuda)")
-    return dev
 
 
 def resolve_scene_dir(run_dir: Path, ident: dict, profile: str | None, data=None) -> Path:

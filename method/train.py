@@ -18,8 +18,6 @@ so on the CPU a resumed run equals an uninterrupted one (tests/test_training_loo
 from __future__ import annotations
 
 import json
-import platform
-import resource
 import time
 from pathlib import Path
 
@@ -30,6 +28,7 @@ from lumibench.io import atomic_write_json
 from method import run_record
 from method.checkpoints import checkpoint_paths, latest_checkpoint, save_checkpoint
 from method.data import SceneData, load_scene
+from method.devices import check_device, device_name, peak_memory_bytes, sync
 from method.splat.backend import resolve as resolve_backend
 from method.stage1 import Stage1
 from method.stage2 import Stage2
@@ -45,35 +44,6 @@ def default_run_dir(runs: str | Path, profile: str, name: str, scene: str, light
     return Path(runs) / profile / name / scene / light / f"seed{seed}"
 
 
-def check_device(device: str) -> torch.device:
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise UserError(f"--device must be cpu or cuda, got {device!r}") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError("--device cuda asked for, but this torch has no CUDA device (use --device cpu)")
-    if dev.type not in ("cpu", "cuda"):
-        raise UserError(f"--device must be cpu or cuda, got {device!r}")
-    return dev
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def peak_memory_bytes(device: torch.device) -> int:
-    if device.type == "cuda":
-        return int(torch.cuda.max_memory_allocated(device))
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux: KiB
-
-
-def device_name(device: torch.device) -> str:
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    return platform.processor() or platform.machine() or "cpu"
-
-
 class Timer:
     """Seconds per named phase of a step, summed over the run (synchronising CUDA at each lap)."""
 
@@ -83,11 +53,11 @@ class Timer:
         self._t = 0.0
 
     def start(self):
-        _sync(self.device)
+        sync(self.device)
         self._t = time.perf_counter()
 
     def lap(self, name: str):
-        _sync(self.device)
+        sync(self.device)
         t = time.perf_counter()
         self.sums[name] = self.sums.get(name, 0.0) + (t - self._t)
         self._t = t

@@ -60,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     from method.checkpoints import checkpoint_paths
     from method.config import load_method_config
     from method.predictions import write_predictions
-    from method.train import check_device, default_run_dir, train_stage1, train_stage2
+    from method.devices import check_device
+    from method.train import default_run_dir, train_stage1, train_stage2
 
     check_device(args.device)
     set_splat_backend(args.splat_backend)
