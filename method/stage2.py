@@ -2,8 +2,9 @@
 
 Per Gaussian: albedo (stored display-encoded through a sigmoid, initialised from the canonical colour,
 linearised and clamped to [albedo_min, albedo_max] for shading) and roughness (sigmoid, init 0.75); one
-environment map, learned (paper) or kept as it starts (``stage2.env_fixed``). Fine-tuned at finetune_factor x their stage-1 rate: the canonical colours,
-the delta-colour head and opacity. Frozen: positions, rotations, scales, P and the rest of the network.
+environment map, learned (paper) or kept as it starts (``stage2.env_fixed``). Fine-tuned at
+finetune_factor x their stage-1 rate: the canonical colours, the delta-colour head and opacity. Frozen:
+positions, rotations, scales, P and the rest of the network.
 
 A step: rasterize colour, albedo, roughness, normal and depth at a training frame's time (deferred
 shading); on randomly sampled foreground pixels, Monte Carlo over the hemisphere (method.shading.render)

@@ -25,7 +25,9 @@ def run(args: argparse.Namespace) -> int:
 
     rec = diagnose(args.run, args.test_light, dirs=args.dirs, views=args.views, device=args.device, seed=args.seed,
                    data=args.data, out=args.out)
-    print(f"{rec['scene']}: {rec['train_light']} -> {rec['test_light']}, {rec['views']} views, relight PSNR (lumimotion)")
+    print(f"{rec['scene']}: {rec['train_light']} -> {rec['test_light']}, {rec['views']} views, "
+          f"relight PSNR (lumimotion)")
     for name, s in rec["steps"].items():
-        print(f"  {name:13s} {s['psnr']:6.2f} dB  ({s['psnr_gain']:+.2f})  SSIM {s['ssim']:.3f}  LPIPS {s['lpips']:.3f}")
+        print(f"  {name:17s} {s['psnr']:6.2f} dB  ({s['psnr_gain']:+.2f})  SSIM {s['ssim']:.3f}  "
+              f"LPIPS {s['lpips']:.3f}")
     return 0

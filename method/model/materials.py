@@ -47,4 +47,5 @@ class Materials:
         return Materials(st["albedo_logit"].to(device), st["roughness_logit"].to(device), env)
 
     def num_parameters(self) -> int:
-        return self.albedo_logit.numel() + self.roughness_logit.numel() + sum(p.numel() for p in self.env.parameters())
+        env = sum(p.numel() for p in self.env.parameters())
+        return self.albedo_logit.numel() + self.roughness_logit.numel() + env
