@@ -68,10 +68,10 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
         raise ValueError("no points to fit the env map to")
     w = weights.to(torch.float64)
     log_y = radiance.to(torch.float64).clamp_min(1e-6).log()
-    is_upper = torch.arange(height * width) // width < height // 2
+    is_upper = torch.arange(height * width, device=w.device) // width < height // 2
     sky_up = w[:, is_upper].sum(1, keepdim=True)  # irradiance x pi from a unit upper sky
     sky_low = w[:, ~is_upper].sum(1, keepdim=True)
-    rho = torch.as_tensor(ratios, dtype=torch.float64)
+    rho = torch.as_tensor(ratios, dtype=torch.float64, device=w.device)
     upper = [k for k in range(height * width) if bool(is_upper[k])]
     best = None
     for lower in lower_levels:
@@ -140,7 +140,8 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
     if not weights:
         raise ValueError("no foreground pixels in the training views to fit the env map to")
     rgb = torch.cat(radiance)
-    fit = fit_sun_sky(torch.cat(weights), luminance(rgb), H, W)
+    # a small dense search (one candidate sun per upper texel): on the CPU, not as hundreds of GPU launches
+    fit = fit_sun_sky(torch.cat(weights).cpu(), luminance(rgb).cpu(), H, W)
     env = sun_sky_map(H, W, fit["texel"], fit["ratio"], fit["scale"], fit["lower"]).to(dev)
     record = {**fit, "texel": list(fit["texel"]), "points": int(rgb.shape[0]),
               "views": len(weights), "rays": rays, "seconds": time.perf_counter() - t0,

@@ -62,6 +62,16 @@ def test_fit_finds_the_sun_texel_and_ratio_through_texture_noise():
     assert int(env[..., 0].argmax()) == 3 * W + 11
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_fit_on_cuda_tensors_equals_the_cpu_fit():
+    """Stage 2 on a GPU hands the fit CUDA tensors (a device mix failed there in session 16)."""
+    w, y = _synthetic_scene((3, 11), 80.0)
+    cpu, gpu = fit_sun_sky(w, y, H, W), fit_sun_sky(w.cuda(), y.cuda(), H, W)
+    assert tuple(gpu["texel"]) == tuple(cpu["texel"]) and gpu["ratio"] == cpu["ratio"]
+    assert gpu["scale"] == pytest.approx(cpu["scale"], rel=1e-9)
+
+
 def test_fit_recovers_a_dark_ground():
     w, y = _synthetic_scene((4, 20), 50.0, lower=0.2, lift=0.0, seed=1)
     fit = fit_sun_sky(w, y, H, W)
