@@ -37,9 +37,9 @@ from method.shading.deferred import accel_for, display, raster_materials, shade_
 from method.shading.envmap import load_envmap
 
 ALL = ("albedo", "roughness", "normal")
-# (name, buffers replaced by the ground truth); the last step also drops our traced shadows (V = 1): where it
-# beats gt_all, the shadows our Gaussians cast under the test light are worse than none
-STEPS = (("ours", ()), ("gt_albedo", ("albedo",)), ("gt_roughness", ("roughness",)), ("gt_normal", ("normal",)),
+# (name, buffers replaced by the ground truth); "ours_unshadowed" and the last step drop our traced shadows
+# (V = 1): where they beat "ours" / "gt_all", the shadows our Gaussians cast under the test light are worse than none
+STEPS = (("ours", ()), ("ours_unshadowed", ("no_shadows",)), ("gt_albedo", ("albedo",)), ("gt_roughness", ("roughness",)), ("gt_normal", ("normal",)),
          ("gt_all", ALL), ("gt_all_unshadowed", ALL + ("no_shadows",)))
 
 

@@ -187,6 +187,7 @@ def test_diagnose_swaps_one_buffer_at_a_time_with_the_same_samples(ci_dataset, t
     steps = rec["per_view_psnr"]
     assert steps["ours_again"] == steps["ours"]
     assert steps["gt_albedo"] != steps["ours"] and steps["gt_all"] != steps["gt_albedo"]
+    assert steps["ours_unshadowed"] != steps["ours"]  # our buffers, V = 1: the traced shadows are dropped
 
     real = dg._gt_buffers
 
@@ -197,5 +198,6 @@ def test_diagnose_swaps_one_buffer_at_a_time_with_the_same_samples(ci_dataset, t
     monkeypatch.setattr(dg, "_gt_buffers", black_albedo)
     rec2 = dg.diagnose(tiny_run, "sunrise", views=2, dirs=8, out=tmp_path / "d2", progress=False)
     assert rec2["per_view_psnr"]["gt_roughness"] == steps["gt_roughness"]  # only the albedo steps change
+    assert rec2["per_view_psnr"]["ours_unshadowed"] == steps["ours_unshadowed"]  # no ground truth in it
     assert rec2["per_view_psnr"]["gt_albedo"] != steps["gt_albedo"]
     assert rec2["per_view_psnr"]["gt_all"] != steps["gt_all"]
