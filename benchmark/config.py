@@ -10,6 +10,7 @@ from pathlib import Path
 
 from lumibench.config import Node, load_yaml
 from lumibench.errors import UserError
+from lumibench.layout import parse_light
 from lumibench.profiles import CONFIG_DIR, available_profiles
 
 from .protocol import PROTOCOLS
@@ -41,6 +42,7 @@ class BenchmarkConfig:
     configurations: tuple[Configuration, ...]
     methods: tuple[str, ...]
     seeds: tuple[int, ...]
+    light_files: tuple[str, ...] = ()  # the .hdr/.exr files the configurations name (by stem), for rendering
 
     def with_methods(self, methods: list[str] | None) -> "BenchmarkConfig":
         if not methods:
@@ -69,13 +71,24 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
     scenes = _strings(root, "scenes")
     # scene names are checked by the job grid: a rendered scene needs no spec in configs/scenes/
     known_lights = _known_lights()
-    configurations = []
+    configurations, light_files = [], {}
     for node in root.children("configurations"):
         node.reject_unknown(["train", "test"])
-        train, test = node.get("train", str), node.get("test", str)
-        for key, light in (("train", train), ("test", test)):
-            if known_lights and light not in known_lights and not light.endswith((".hdr", ".exr")):
-                raise node.error(key, f"names an unknown light '{light}' (known: {', '.join(known_lights)})")
+        names = []
+        for key in ("train", "test"):
+            light = node.get(key, str)
+            hint = f"known: {', '.join(known_lights)}; or give a path to an .hdr or .exr file, named by its stem"
+            try:
+                name, file = parse_light(light)  # a file is named by its stem, never by its path
+            except UserError as exc:
+                raise node.error(key, f"{exc} ({hint})") from None
+            if file is None and known_lights and name not in known_lights:
+                raise node.error(key, f"names an unknown light '{light}' ({hint})")
+            if file is not None and Path(light_files.setdefault(name, light)).expanduser() != file:
+                raise node.error(key, f"light files {light_files[name]} and {light} would share the name '{name}'; "
+                                      "rename one")
+            names.append(name)
+        train, test = names
         if train == test:
             raise node.error("test", f"must differ from the train light ('{train}')")
         configurations.append(Configuration(train, test))
@@ -87,7 +100,7 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
         raise root.error("seeds", f"must be a non-empty list of non-negative integers, got {seeds!r}")
     return BenchmarkConfig(str(path), profile, protocol, lpips_net, tuple(scenes), tuple(configurations),
-                           tuple(methods), tuple(seeds))
+                           tuple(methods), tuple(seeds), tuple(light_files.values()))
 
 
 def known_scenes() -> list[str]:

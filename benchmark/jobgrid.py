@@ -50,8 +50,10 @@ def pred_dir(paths: Paths, method: str, scene: str, train_light: str, seed: int)
 
 
 def render_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
-    """One job per scene whose dataset is missing or unfinished (lumibench.layout.is_complete)."""
-    return [{"kind": "render", "scene": s, "profile": paths.profile, "data": str(paths.data)}
+    """One job per scene whose dataset is missing or unfinished (lumibench.layout.is_complete); the grid's
+    light files are rendered besides the named lights."""
+    extra = {"light_files": list(config.light_files)} if config.light_files else {}
+    return [{"kind": "render", "scene": s, "profile": paths.profile, "data": str(paths.data), **extra}
             for s in config.scenes if not layout.is_complete(layout.scene_dir(paths.data, paths.profile, s))]
 
 
@@ -153,7 +155,12 @@ def _execute_render(job: dict[str, Any]) -> dict[str, Any]:
     try:
         from generator.pipeline import render_scene
 
-        render_scene(job["scene"], job["profile"], job["data"], job.get("jobs", 1))
+        lights = {}
+        if job.get("light_files"):  # every named light, as `make dataset` renders, and the grid's files
+            from generator.pipeline import default_lights
+
+            lights = {"lights": default_lights() + job["light_files"]}
+        render_scene(job["scene"], job["profile"], job["data"], job.get("jobs", 1), **lights)
         scene = layout.scene_dir(job["data"], job["profile"], job["scene"])
         if not layout.is_complete(scene):
             raise RuntimeError(f"rendering finished but {scene}/dataset.json does not say complete")

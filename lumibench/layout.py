@@ -63,6 +63,27 @@ def envmap_path(scene: Path, light: str) -> Path:
     return Path(scene) / f"{light}.hdr"
 
 
+LIGHT_FILE_SUFFIXES = (".hdr", ".exr")
+
+
+def parse_light(spec: str | Path) -> tuple[str, Path | None]:
+    """A light as a user gives it -> (its name, its env-map file, or None for a light given by name).
+
+    A light is a name (configs/lights.yaml, a folder of the dataset) or a path to an .hdr/.exr file (anything
+    with a path separator or that suffix). A file is named by its stem everywhere: the dataset's
+    ``<light>/`` folder, run and result paths, tables, logs; so a path never becomes part of an output path.
+    """
+    text = str(spec)
+    if not (text.lower().endswith(LIGHT_FILE_SUFFIXES) or "/" in text or "\\" in text):
+        return text, None
+    path = Path(text).expanduser()
+    if path.suffix.lower() not in LIGHT_FILE_SUFFIXES:
+        raise UserError(f"light file {path}: unsupported format '{path.suffix}' (use .hdr or .exr)")
+    if path.stem.startswith(".") or "\\" in path.stem:
+        raise UserError(f"light file {path}: its name '{path.stem}' cannot name a light folder; rename the file")
+    return path.stem, path
+
+
 @dataclass(frozen=True)
 class Frame:
     file_path: str

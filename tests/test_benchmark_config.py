@@ -52,3 +52,26 @@ def test_unknown_profile_and_method_override(tmp_path):
     assert cfg.with_methods(["noisy_gt"]).methods == ("noisy_gt",)
     with pytest.raises(UserError, match="--methods: unknown method 'x'"):
         cfg.with_methods(["x"])
+
+
+def test_light_files_are_named_by_their_stem(tmp_path):
+    path = tmp_path / "grid.yaml"
+    path.write_text(GOOD.replace("{train: city, test: sunrise}",
+                                 f"{{train: {tmp_path / 'hdri' / 'attic.hdr'}, test: ~/maps/Harbour.EXR}}"))
+    cfg = load_benchmark_config(path)
+    assert cfg.configurations == (Configuration("attic", "Harbour"),)
+    assert cfg.configurations[0].slug == "attic_to_Harbour"
+
+
+@pytest.mark.parametrize("light, needles", [
+    ("moon", ["unknown light 'moon'", "city", "a path to an .hdr or .exr file"]),
+    ("/maps/moon.png", ["/maps/moon.png", "a path to an .hdr or .exr file"]),
+])
+def test_unknown_light_says_a_file_path_is_accepted(tmp_path, light, needles):
+    path = tmp_path / "grid.yaml"
+    path.write_text(GOOD.replace("test: sunrise", f"test: {light}"))
+    with pytest.raises(UserError) as err:
+        load_benchmark_config(path)
+    assert "configurations[0].test" in str(err.value)
+    for needle in needles:
+        assert needle in str(err.value)

@@ -200,3 +200,53 @@ def test_eval_does_not_count_a_method_not_run_as_failed(tmp_path, monkeypatch, c
     err = capsys.readouterr().err
     assert rc == 0 and "jobs run failed" not in err, err
     assert (tmp_path / "results" / "ci" / "table.md").is_file()
+
+
+def test_grid_on_light_files_uses_their_stems_and_writes_nothing_beside_them(tmp_path):
+    """Issue 26: configurations given as .hdr paths run like named lights (the dataset's light folders are the
+    files' stems), and nothing is written outside --runs and --results (nothing beside the user's HDRIs)."""
+    import numpy as np
+
+    from benchmark.__main__ import main
+    from generator.envmap import write_hdr
+
+    hdri = tmp_path / "my_hdris"
+    for name in ("attic", "harbour"):
+        write_hdr(hdri / f"{name}.hdr", np.full((16, 32, 3), 0.5, np.float32))
+    before = sorted(p.relative_to(hdri) for p in hdri.rglob("*"))
+    data = tmp_path / "data"
+    make_fake_scene(data / "ci", name="fp", lights=("attic", "harbour"), res=24, n_test=2, n_train=2)
+    grid = tmp_path / "grid.yaml"
+    grid.write_text(f"profile: ci\nscenes: [fp]\nconfigurations:\n"
+                    f"  - {{train: {hdri / 'attic.hdr'}, test: {hdri / 'harbour.hdr'}}}\n"
+                    f"methods: [lit_as_albedo, mean_albedo]\nseeds: [0]\n")
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    rc = main(["eval", "--config", str(grid), "--data", str(data), "--runs", str(runs), "--results", str(results),
+               "--no-grids"])
+    assert sorted(p.relative_to(hdri) for p in hdri.rglob("*")) == before  # nothing new beside the HDRIs
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "grid.yaml", "my_hdris", "results", "runs"]
+    assert rc == 0
+    for method in ("lit_as_albedo", "mean_albedo"):
+        res = read_result(results / "ci" / "runs" / method / "fp" / "attic_to_harbour" / "seed0" / "results.json")
+        assert res["status"] == "ok" and (res["train_light"], res["test_light"]) == ("attic", "harbour")
+        assert (runs / "ci" / method / "fp" / "attic" / "seed0" / "predictions").is_dir()
+    table = (results / "ci" / "table.md").read_text()
+    assert "attic" in table and str(hdri) not in table
+
+
+def test_grid_renders_its_light_files_with_the_named_lights(tmp_path, monkeypatch):
+    calls = []
+
+    def render_scene(scene, profile, data, jobs, lights=None):
+        calls.append(lights)
+        make_fake_scene(Path(data) / profile, name=scene, lights=("city", "attic"), res=24, n_test=2, n_train=2)
+
+    fake = types.SimpleNamespace(render_scene=render_scene, default_lights=lambda: ["city", "sunrise"])
+    monkeypatch.setitem(sys.modules, "generator.pipeline", fake)
+    monkeypatch.setattr("benchmark.jobgrid.known_scenes", lambda: ["newscene"])
+    grid = tmp_path / "grid.yaml"
+    grid.write_text(f"profile: ci\nscenes: [newscene]\nconfigurations:\n"
+                    f"  - {{train: city, test: {tmp_path}/attic.hdr}}\nmethods: [mean_albedo]\n")
+    report = run_grid(load_benchmark_config(grid), _paths(tmp_path, tmp_path / "data"), quiet=True)
+    assert calls == [["city", "sunrise", f"{tmp_path}/attic.hdr"]]
+    assert [o["status"] for _, o in report.rendered + report.executed] == ["ok", "ok"]

@@ -76,3 +76,18 @@ def test_run_cli_turns_user_error_into_exit_2(capsys):
     assert run_cli(main, []) == 2
     err = capsys.readouterr().err
     assert err.strip() == "error: unknown light 'moon'"
+
+
+def test_parse_light_names_a_file_by_its_stem(tmp_path):
+    from pathlib import Path
+
+    from lumibench.layout import parse_light
+
+    assert parse_light("city") == ("city", None)
+    assert parse_light(tmp_path / "my_sky.hdr") == ("my_sky", tmp_path / "my_sky.hdr")
+    assert parse_light("maps/Dusk.EXR") == ("Dusk", Path("maps/Dusk.EXR"))
+    assert parse_light("~/sky.hdr") == ("sky", Path("~/sky.hdr").expanduser())
+    with pytest.raises(UserError, match=r"light file /maps/sky\.png: unsupported format '\.png'"):
+        parse_light("/maps/sky.png")
+    with pytest.raises(UserError, match="rename the file"):
+        parse_light("/maps/.hidden.hdr")
