@@ -9,6 +9,7 @@ import numpy as np
 
 from lumibench.config import Node, load_yaml
 from lumibench.errors import UserError
+from lumibench.layout import parse_light
 from lumibench.profiles import CONFIG_DIR
 
 from .envmap import downsample_envmap, read_envmap, rotate_envmap
@@ -75,7 +76,8 @@ def load_lights(path: str | Path = LIGHTS_YAML) -> dict[str, LightSpec]:
 def resolve_light(name_or_path: str | Path, lights_yaml: str | Path = LIGHTS_YAML) -> LightSpec:
     """A light by name from lights.yaml, or a user .hdr/.exr path (rotation 0, strength 1).
 
-    The light's name for a path is the file stem (used for the dataset's ``<light>/`` folder).
+    The light's name for a path is the file stem (lumibench.layout.parse_light: the dataset's ``<light>/``
+    folder).
     """
     text = str(name_or_path)
     lights = load_lights(lights_yaml)
@@ -84,15 +86,13 @@ def resolve_light(name_or_path: str | Path, lights_yaml: str | Path = LIGHTS_YAM
         if not spec.source.is_file():
             raise UserError(f"light '{text}': environment map not found: {spec.source} (see {lights_yaml})")
         return spec
-    looks_like_path = text.lower().endswith(_SUFFIXES) or "/" in text or "\\" in text
-    if not looks_like_path:
-        raise UserError(f"unknown light '{text}' (known: {', '.join(sorted(lights))}; or give an .hdr/.exr path)")
-    p = Path(text).expanduser()
-    if not p.suffix.lower() in _SUFFIXES:
-        raise UserError(f"light file {p}: unsupported format '{p.suffix}' (use .hdr or .exr)")
+    name, p = parse_light(text)
+    if p is None:
+        raise UserError(f"unknown light '{text}' (known: {', '.join(sorted(lights))}; "
+                        f"or give a path to an .hdr or .exr file, named by its stem)")
     if not p.is_file():
         raise UserError(f"light file not found: {p}")
-    return LightSpec(p.stem, p.resolve(), 0.0, 1.0)
+    return LightSpec(name, p.resolve(), 0.0, 1.0)
 
 
 def prepare_envmap(spec: LightSpec) -> np.ndarray:

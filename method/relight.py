@@ -13,6 +13,7 @@ import yaml
 
 from lumibench.errors import UserError
 from lumibench.io import atomic_path, write_png
+from lumibench.layout import parse_light
 from method.devices import check_device
 from method.splat.camera import Camera
 
@@ -139,7 +140,7 @@ def relight(run_dir, envmap: str, *, views: str = "test", time: float | None = N
         raise UserError(f"--dirs must be a whole number >= 1 (directions per pixel), got {dirs}")
     dev = check_device(device)
     scene_dir = resolve_scene_dir(run_dir, ident, cfg.get("profile"), data)
-    name = Path(envmap).stem if ("/" in envmap or envmap.lower().endswith((".hdr", ".exr"))) else envmap
+    name, _ = parse_light(envmap)
     out = Path(out) if out else run_dir / "relight" / name
     env = load_envmap(envmap, scene_dir, height=None, width=None, device=dev)
     prepare_output(out)

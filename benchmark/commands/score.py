@@ -38,7 +38,10 @@ def check_out(out: Path, given: bool) -> None:
 def run(args: argparse.Namespace) -> int:
     from benchmark.results import write_result
     from benchmark.score import score
+    from lumibench.layout import parse_light
 
+    args.train_light, _ = parse_light(args.train_light)  # a light file is its stem, the dataset's folder
+    args.test_light, _ = parse_light(args.test_light)
     out = Path(args.out) if args.out else Path(args.pred) / f"results_{args.train_light}_to_{args.test_light}.json"
     if args.out or Path(args.pred).is_dir():  # a missing --pred folder is score()'s error to name
         check_out(out, bool(args.out))

@@ -21,9 +21,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lumibench.layout import parse_light
     from method.diagnose import diagnose
 
-    rec = diagnose(args.run, args.test_light, dirs=args.dirs, views=args.views, device=args.device, seed=args.seed,
+    light, _ = parse_light(args.test_light)  # a light file is its stem: the dataset's folder, RUN/diagnose/<light>
+    rec = diagnose(args.run, light, dirs=args.dirs, views=args.views, device=args.device, seed=args.seed,
                    data=args.data, out=args.out)
     print(f"{rec['scene']}: {rec['train_light']} -> {rec['test_light']}, {rec['views']} views, "
           f"relight PSNR (lumimotion)")

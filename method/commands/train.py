@@ -57,6 +57,7 @@ def set_splat_backend(name: str | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lumibench.errors import UserError
+    from lumibench.layout import parse_light
     from method.checkpoints import checkpoint_paths
     from method.config import load_method_config
     from method.predictions import write_predictions
@@ -65,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_device(args.device)
     set_splat_backend(args.splat_backend)
+    args.light, _ = parse_light(args.light)  # a light file is its stem: the dataset's folder, the run's name
     cfg = load_method_config(args.profile, args.overrides)
     scene_dir = resolve_scene(args.data, args.profile, args.scene)
     name = args.name or ("static" if args.static else "lumimotion")

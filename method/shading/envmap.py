@@ -134,8 +134,8 @@ def load_envmap(source: str | Path, scene_dir: str | Path | None = None, *, heig
     Bad input -> UserError with one line.
     """
     text = str(source)
-    path = Path(text).expanduser()
-    if text.lower().endswith((".hdr", ".exr")) or "/" in text:
+    _, path = layout.parse_light(text)
+    if path is not None:
         img = check_envmap(genv.read_envmap(path), path)
     elif scene_dir is not None and layout.envmap_path(Path(scene_dir), text).is_file():
         img = check_envmap(genv.read_envmap(layout.envmap_path(Path(scene_dir), text)),
