@@ -1,7 +1,10 @@
 """Charts (matplotlib, Agg): quality vs training time (Pareto front), vs Gaussian count, seed stability.
 
-Failed runs are drawn (a red cross on the lower edge of the axes, counted in the legend), never dropped
-silently. Each chart works from result dictionaries only, so `make eval` rebuilds them from stored results.
+Failed runs are drawn (a red cross in a row kept free under the data, counted in the legend), never
+dropped silently. An external method that has not been run is no failure: it draws nothing and is named
+under the chart as "not run". Log axes carry plain numbers (0.1, 1, 10, 1k; 5k, 10k, 20k) on 1-2-5 or
+decade positions and no minor labels; the legend sits outside the axes, shared by both panels. Each chart
+works from result dictionaries only, so `make eval` rebuilds them from stored results.
 """
 from __future__ import annotations
 
@@ -27,7 +30,114 @@ def _plt():
 
 
 def _methods(results: Sequence[dict]) -> list[str]:
-    return list(dict.fromkeys(r["method"] for r in results))
+    """Methods in first-seen order, less those none of whose jobs has been run (see :func:`_not_run_note`)."""
+    return list(dict.fromkeys(r["method"] for r in results if not is_not_run(r)))
+
+
+def _not_run_note(results: Sequence[dict]) -> str | None:
+    """One line naming the methods with jobs that were not run (external, no outputs yet), or None."""
+    names = []
+    for m in dict.fromkeys(r["method"] for r in results if is_not_run(r)):
+        n = sum(1 for r in results if r["method"] == m and is_not_run(r))
+        total = sum(1 for r in results if r["method"] == m)
+        names.append(m if n == total else f"{m} ({n} of {total} jobs)")
+    return f"not run (no outputs yet; not failures): {', '.join(names)}" if names else None
+
+
+def _plain_number(v: float, unit: float = 1.0, suffix: str = "") -> str:
+    if unit != 1.0:
+        return f"{v / unit:.10g}{suffix}"
+    return f"{v:,.0f}" if float(v).is_integer() else f"{v:,.10g}"
+
+
+def _log_ticks(vmin: float, vmax: float) -> list[float]:
+    """Readable major positions on a log axis: decades when it spans many, 1-2-5 when few, else even steps."""
+    from matplotlib.ticker import MaxNLocator
+
+    vmin, vmax = sorted((vmin, vmax))
+    if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmax <= 0:
+        return []
+    vmin = max(vmin, vmax * 1e-12)
+    decades = np.log10(vmax / vmin)
+    lo, hi = int(np.floor(np.log10(vmin))), int(np.ceil(np.log10(vmax)))
+
+    def within(subs, every=1):
+        eps = 1e-9 * vmax
+        return [m * 10.0 ** e for e in range(lo, hi + 1) if (e - lo) % every == 0 for m in subs
+                if vmin - eps <= m * 10.0 ** e <= vmax + eps]
+
+    if decades > 2.2:
+        return within((1,), every=int(np.ceil(decades / 6)))
+    ticks = within((1, 2, 5))
+    if len(ticks) >= 3:
+        return ticks
+    # under about half a decade: even steps (e.g. 19,940 19,950 19,960) rather than one lonely label
+    return [float(t) for t in MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]).tick_values(vmin, vmax)
+            if vmin <= t <= vmax]
+
+
+def _readable_log_axis(axis) -> None:
+    """Plain-number major labels at :func:`_log_ticks` positions; minor ticks unlabelled."""
+    from matplotlib.ticker import Formatter, Locator, LogLocator, NullFormatter
+
+    class _Locator(Locator):
+        def __call__(self):
+            return self.tick_values(*self.axis.get_view_interval())
+
+        def tick_values(self, vmin, vmax):
+            return _log_ticks(vmin, vmax)
+
+    class _Formatter(Formatter):
+        short = True
+
+        def set_locs(self, locs):
+            # thousands as "k" when every label from 1,000 up reads exactly so ("1k 10k", "5k 10k 20k");
+            # otherwise all of them in full ("19,940 19,950"), never a mix of both
+            super().set_locs(locs)
+            big = [abs(v) for v in locs if abs(v) >= 1e3]
+            self.short = all(abs(v / 100 - round(v / 100)) < 1e-6 for v in big)
+
+        def __call__(self, x, pos=None):
+            if self.short and abs(x) >= 1e6 and abs(x / 1e5 - round(x / 1e5)) < 1e-6:
+                return _plain_number(x, 1e6, "M")
+            if self.short and abs(x) >= 1e3:
+                return _plain_number(x, 1e3, "k")
+            return _plain_number(x)
+
+    axis.set_major_locator(_Locator())
+    axis.set_major_formatter(_Formatter())
+    axis.set_minor_locator(LogLocator(subs=np.arange(2, 10)))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def _reserve_failure_row(ax, n: int) -> None:
+    """Lower the y-limit so that the data sits above the row of failure crosses (none cover a point)."""
+    if n <= 0:
+        return
+    frac = min(_failure_heights(n)[-1] + 0.05, 0.3)
+    lo, hi = ax.get_ylim()
+    ax.set_ylim(lo - frac * (hi - lo) / (1 - frac), hi)
+
+
+def _failure_heights(n: int) -> list[float]:
+    step = min(0.04, 0.15 / max(n - 1, 1))
+    return [0.03 + step * k for k in range(n)]
+
+
+def _figure_legend(fig, axes) -> None:
+    """One legend for all panels, outside them on the right, so that it covers no point."""
+    seen: dict[str, Any] = {}
+    for ax in np.atleast_1d(axes):
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(lab, h)
+    if seen:
+        fig.legend(list(seen.values()), list(seen.keys()), loc="outside right upper", fontsize=8)
+
+
+def _figure_notes(fig, notes: Sequence[str | None]) -> None:
+    notes = [n for n in notes if n]
+    if notes:  # under the x labels; savefig(bbox_inches="tight") keeps it in the image
+        fig.text(0.01, 0.0, "\n".join(notes), ha="left", va="top", fontsize=8, color="0.3")
 
 
 def _colours(methods: Sequence[str]) -> dict[str, Any]:
@@ -59,7 +169,7 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
     plt = _plt()
     methods = _methods(results)
     colours = _colours(methods)
-    fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY), 4.2))
+    fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY) + 1.6, 4.2), layout="constrained")
     fig.suptitle(title)
     # methods with successful runs none of which reports x: named under the chart, not dropped silently
     missing_x = [m for m in methods if not any(r["method"] == m and r["status"] == "ok" and xfun(r) is not None
@@ -82,8 +192,10 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
             fx, fy = np.array(pareto_front(means, higher)).T
             ax.step(fx, fy, where="post", color="0.3", lw=1, ls="--", label="Pareto front", zorder=2)
         _draw_failures(ax, results, methods, colours, xpos)
+        _reserve_failure_row(ax, _max_failures(results))
         if means and min(x for x, _ in means) > 0:
             ax.set_xscale("log")
+            _readable_log_axis(ax.xaxis)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
@@ -91,31 +203,40 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
             ax.text(0.5, 0.5, f"no run reports {xlabel.split(' (')[0]}" +
                     (f"\n({', '.join(missing_x)} report none)" if missing_x else ""),
                     ha="center", va="center", transform=ax.transAxes, fontsize=9, color="0.35")
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7, loc="best")
-    if missing_x and len(missing_x) < len(methods):
-        fig.text(0.01, -0.02, f"not shown (no {xlabel.split(' (')[0]} reported): {', '.join(missing_x)}",
-                 fontsize=8, color="0.35")
+    _figure_legend(fig, axes)
+    _figure_notes(fig, [f"not shown (no {xlabel.split(' (')[0]} reported): {', '.join(missing_x)}"
+                        if missing_x and len(missing_x) < len(methods) else None, _not_run_note(results)])
     return _save(fig, path)
+
+
+def _failed(results: Sequence[dict]) -> list[dict]:
+    return [r for r in results if r["status"] != "ok" and not is_not_run(r)]
+
+
+def _max_failures(results: Sequence[dict]) -> int:
+    counts: dict[str, int] = {}
+    for r in _failed(results):
+        counts[r["method"]] = counts.get(r["method"], 0) + 1
+    return max(counts.values(), default=0)
 
 
 def _draw_failures(ax, results: Sequence[dict], methods: Sequence[str], colours: dict,
                    xpos: dict[str, float] | None = None) -> None:
-    """A red cross per failed run on the lower edge, so failures stay visible.
+    """A red cross per failed run along the lower edge, so failures stay visible.
 
     ``xpos`` gives a method's x in data coordinates (its mean); methods without one go on the left.
     An external method that has not been run is not a failure (the tables list it as "not run").
     """
-    failed = [r for r in results if r["status"] != "ok" and not is_not_run(r)]
+    failed = _failed(results)
     for i, m in enumerate(methods):
         n = sum(1 for r in failed if r["method"] == m)
         if not n:
             continue
         if xpos and m in xpos:
-            ax.scatter([xpos[m]] * n, [0.03 + 0.04 * k for k in range(n)], transform=ax.get_xaxis_transform(),
+            ax.scatter([xpos[m]] * n, _failure_heights(n), transform=ax.get_xaxis_transform(),
                        marker="x", color="red", s=40, clip_on=False, label=f"{m}: {n} failed", zorder=4)
         else:
-            ax.scatter([0.04 + 0.05 * i] * n, [0.03 + 0.04 * k for k in range(n)], transform=ax.transAxes,
+            ax.scatter([0.04 + 0.05 * i] * n, _failure_heights(n), transform=ax.transAxes,
                        marker="x", color="red", s=40, clip_on=False, label=f"{m}: {n} failed (no value)", zorder=4)
 
 
@@ -133,13 +254,17 @@ def stability_chart(results: Sequence[dict], path: Path) -> Path:
     """Per method and (scene, configuration): the value of every seed, so spread across seeds shows."""
     plt = _plt()
     methods = _methods(results)
-    fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY), 4.2))
-    fig.suptitle("Stability across seeds (one column per method; dots: seeds, bar: min-max per scene/config)")
-    seeds = sorted({r["seed"] for r in results})
-    cmap = plt.get_cmap("viridis")
+    fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY) + 1.2, 4.4), layout="constrained")
+    fig.suptitle("Stability across seeds\none column per method; dots: seeds, bar: min-max per scene/config")
+    seeds = sorted({r["seed"] for r in results if r["status"] == "ok"})
+    viridis = plt.get_cmap("viridis")
+
+    def cmap(t: float):  # viridis without its pale yellow end, which is hard to see on white
+        return viridis(0.85 * t)
+
     for ax, (key, label, _) in zip(np.atleast_1d(axes), QUALITY):
         for i, m in enumerate(methods):
-            runs = [r for r in results if r["method"] == m]
+            runs = [r for r in results if r["method"] == m and not is_not_run(r)]
             cells = sorted({(r["scene"], r["train_light"], r["test_light"]) for r in runs})
             for j, cell in enumerate(cells):
                 x = i + (j - (len(cells) - 1) / 2) * (0.6 / max(len(cells), 1))
@@ -151,13 +276,16 @@ def stability_chart(results: Sequence[dict], path: Path) -> Path:
                     ax.plot([x, x], [min(vs), max(vs)], color="0.6", lw=1)
                     ax.scatter([x] * len(vs), vs, s=16, zorder=3,
                                color=[cmap(seeds.index(s) / max(len(seeds) - 1, 1)) for s, _ in vals])
+        for k, s in enumerate(seeds):  # legend entries only (the figure legend collects them)
+            ax.plot([], [], ls="", marker="o", color=cmap(k / max(len(seeds) - 1, 1)), label=f"seed {s}")
         _draw_failures(ax, results, methods, _colours(methods), {m: float(i) for i, m in enumerate(methods)})
-        ax.set_xticks(range(len(methods)), methods, rotation=20, fontsize=8)
+        _reserve_failure_row(ax, _max_failures(results))
+        ax.set_xticks(range(len(methods)), methods, rotation=30, ha="right", rotation_mode="anchor", fontsize=8)
+        ax.set_xlim(-0.6, len(methods) - 0.4)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")
-        handles = [plt.Line2D([], [], ls="", marker="o", color=cmap(k / max(len(seeds) - 1, 1)), label=f"seed {s}")
-                   for k, s in enumerate(seeds)]
-        ax.legend(handles=handles + [h for h in ax.get_legend_handles_labels()[0]], fontsize=7, loc="best")
+    _figure_legend(fig, axes)
+    _figure_notes(fig, [_not_run_note(results)])
     return _save(fig, path)
 
 

@@ -147,3 +147,128 @@ def test_outputs_rebuilt_without_predictions_keep_drawn_grids(tmp_path, capsys):
     assert "grids/ours_a_city_to_sunrise_seed0.png" in html
     assert "grids/ours_b_city_to_sunrise_seed0.png" not in html
     assert "no image grid for ours_b_city_to_sunrise_seed0" in capsys.readouterr().err
+
+
+# --- readable charts (issue 26): plain log ticks that do not overlap, "not run" is no failure, legends outside ---
+
+def _drawn(monkeypatch, tmp_path, build, results):
+    """Build a chart with ``build`` and return its figure, drawn (instead of writing the PNG)."""
+    figs = []
+    monkeypatch.setattr(charts, "_save", lambda fig, path: figs.append(fig) or path)
+    build(results, tmp_path / "chart.png")
+    (fig,) = figs
+    fig.canvas.draw()
+    return fig
+
+
+def _shown_labels(ax, minor=False):
+    """The x tick labels drawn inside the axis' view interval, with their bounding boxes on the canvas."""
+    lo, hi = sorted(ax.get_xlim())
+    renderer = ax.figure.canvas.get_renderer()
+    out = []
+    for lab in ax.get_xticklabels(minor=minor):
+        x = lab.get_position()[0]
+        if lab.get_visible() and lab.get_text() and lo * (1 - 1e-9) <= x <= hi * (1 + 1e-9):
+            out.append((lab.get_text(), lab.get_window_extent(renderer)))
+    return out
+
+
+def _assert_no_overlap(labels):
+    for i, (ta, a) in enumerate(labels):
+        for tb, b in labels[i + 1:]:
+            assert not a.overlaps(b), f"tick labels {ta!r} and {tb!r} overlap"
+
+
+def _size_results(counts):
+    return [fake_result(m, s, seed=seed, relight_psnr=24 + i + seed, lpips=0.1 - 0.01 * i, seconds=10 ** i,
+                        gaussians=int(n * (1 + 0.05 * seed)))
+            for i, (m, n) in enumerate(counts.items()) for s in ("a", "b") for seed in (0, 1)]
+
+
+def test_gaussian_axis_ticks_are_plain_numbers_that_do_not_overlap(monkeypatch, tmp_path):
+    import matplotlib.pyplot as plt
+
+    res = _size_results({"small": 5200, "ours": 21000, "big": 190000})
+    fig = _drawn(monkeypatch, tmp_path, charts.gaussians_chart, res)
+    for ax in fig.axes:
+        assert ax.get_xscale() == "log"
+        labels = _shown_labels(ax)
+        texts = [t for t, _ in labels]
+        assert set(texts) <= {"5k", "10k", "20k", "50k", "100k", "200k"}, texts
+        assert {"10k", "20k", "50k", "100k"} <= set(texts), texts
+        assert _shown_labels(ax, minor=True) == []  # no minor labels
+        _assert_no_overlap(labels)
+    plt.close(fig)
+
+    # a narrow range (the published small benchmark: 19,935 to 19,960 Gaussians) overlapped before
+    res = [fake_result("static", s, relight_psnr=26 + k, gaussians=n)
+           for k, (s, n) in enumerate((("a", 19935), ("b", 19960)))]
+    fig = _drawn(monkeypatch, tmp_path, charts.gaussians_chart, res)
+    for ax in fig.axes:
+        labels = _shown_labels(ax)
+        assert len(labels) >= 2
+        assert all(re.fullmatch(r"\d{1,3}(,\d{3})*|\d+(\.\d+)?k", t) for t, _ in labels), labels
+        assert _shown_labels(ax, minor=True) == []
+        _assert_no_overlap(labels + _shown_labels(ax, minor=True))
+    plt.close(fig)
+
+
+def test_time_axis_ticks_are_plain_numbers(monkeypatch, tmp_path):
+    import matplotlib.pyplot as plt
+
+    fig = _drawn(monkeypatch, tmp_path, charts.pareto_chart, _size_results({"a": 1, "b": 1, "c": 1, "d": 1, "e": 1}))
+    for ax in fig.axes:  # seconds from 1 to 10,000 (and a little more)
+        texts = [t for t, _ in _shown_labels(ax)]
+        assert texts == ["1", "10", "100", "1k", "10k"], texts
+        _assert_no_overlap(_shown_labels(ax))
+    plt.close(fig)
+
+
+def _with_not_run():
+    rs = [fake_result("ours", s, seed=seed, relight_psnr=26 + seed, seconds=100, gaussians=20000)
+          for s in ("a", "b") for seed in (0, 1)]
+    rs.append(fake_result("ours", "c", status="failed"))  # a crash: stays a failure
+    for s in ("a", "b"):  # external methods without outputs, in both forms a not-run job is recorded
+        rs.append(fake_result("irgs", s, status="failed") | {"error": "not run: run IRGS and put its outputs in x"})
+        rs.append(fake_result("r3dgs", s, status="failed") | {"status": "not_run", "error": "not run: no outputs"})
+    return rs
+
+
+@pytest.mark.parametrize("build", ["pareto_chart", "gaussians_chart", "stability_chart"])
+def test_method_not_run_is_named_not_drawn_as_failure(monkeypatch, tmp_path, build):
+    import matplotlib.pyplot as plt
+
+    fig = _drawn(monkeypatch, tmp_path, getattr(charts, build), _with_not_run())
+    notes = " ".join(t.get_text() for t in fig.texts)
+    assert re.search(r"not run\b.*: irgs, r3dgs", notes), notes
+    legend_labels = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+    assert "ours: 1 failed" in legend_labels
+    for ax in fig.axes:
+        labels = [c.get_label() for c in ax.collections]
+        assert not [lab for lab in labels if "irgs" in lab or "r3dgs" in lab], labels
+        crosses = [c for c in ax.collections if "failed" in c.get_label()]
+        assert sum(len(c.get_offsets()) for c in crosses) == 1  # the crash only
+        assert not {"irgs", "r3dgs"} & {t.get_text() for t in ax.get_xticklabels()}  # no empty column
+    plt.close(fig)
+
+
+@pytest.mark.parametrize("build", ["pareto_chart", "gaussians_chart", "stability_chart"])
+def test_legend_outside_axes_and_failures_below_the_data(monkeypatch, tmp_path, build):
+    import matplotlib.pyplot as plt
+
+    fig = _drawn(monkeypatch, tmp_path, getattr(charts, build), _with_not_run())
+    renderer = fig.canvas.get_renderer()
+    assert fig.legends, "one legend for the figure"
+    for ax in fig.axes:
+        assert ax.get_legend() is None
+        box = ax.get_window_extent(renderer)
+        for leg in fig.legends:
+            assert not leg.get_window_extent(renderer).overlaps(box), "the legend covers a panel"
+        # every failure cross sits below every data point, with room for the markers (no cross covers a point)
+        cross_y, data_y = [], []
+        for c in ax.collections:
+            ys = c.get_offset_transform().transform(c.get_offsets())[:, 1]
+            (cross_y if "failed" in c.get_label() else data_y).extend(ys)
+        assert cross_y and data_y
+        assert min(data_y) - max(cross_y) > 0.04 * box.height
+    plt.close(fig)
