@@ -8,7 +8,7 @@ from typing import Any, Sequence
 
 from lumibench.io import atomic_write_text
 
-from .aggregate import Group, best_methods
+from .aggregate import Group, best_methods, is_not_run
 from .results import now_iso
 from .tables import DASH, _cell, _cell_text, _columns, _configurations, _method, _pretty, _runs, caption
 
@@ -77,7 +77,8 @@ def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], resu
                  charts: dict[str, Path], grids: Sequence[Path], tables: dict[str, Path],
                  title: str = "LumiBench results", reference: Sequence[Group] = ()) -> Path:
     base = Path(path).parent
-    failed = [r for r in results if r["status"] != "ok"]
+    failed = [r for r in results if r["status"] != "ok" and not is_not_run(r)]
+    not_run = [r for r in results if is_not_run(r)]
     mc = meta.get("metric_config") or {}
     weights = mc.get("lpips_weights") or {}
     parts = [f"<!doctype html><html><head><meta charset=utf-8><title>{html.escape(title)}</title>",
@@ -86,7 +87,9 @@ def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], resu
              f"<p>LPIPS weights: <code>{html.escape(str(weights.get('file', '?')))}</code> from "
              f"<code>{html.escape(str(weights.get('package', '?')))}</code>, sha256 "
              f"<code>{html.escape(str(weights.get('sha256', '?')))}</code>. "
-             f"{len(results)} runs, {len(failed)} failed. Generated {now_iso()}.</p>",
+             f"{len(results) - len(not_run)} runs, {len(failed)} failed"
+             + (f", {len(not_run)} jobs of methods not run here (not failures)" if not_run else "")
+             + f". Generated {now_iso()}.</p>",
              "<p>Tables: " + ", ".join(f"<a href='{_rel(p, base)}'>{html.escape(p.name)}</a>"
                                        for p in tables.values()) + "</p>",
              "<h2>Table</h2>", html_table(groups)]
@@ -112,7 +115,8 @@ def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], resu
     parts += ["<h2>Per-run result files</h2>", "<ul>"]
     for r in results:
         rp = Path(r.get("_path", ""))
-        status = "ok" if r["status"] == "ok" else "<span class=fail>failed</span>"
+        status = ("ok" if r["status"] == "ok" else "not run" if is_not_run(r)
+                  else "<span class=fail>failed</span>")
         parts.append(f"<li><a href='{_rel(rp, base)}'>{html.escape(r['method'])} / {html.escape(r['scene'])} / "
                      f"{html.escape(r['train_light'])}→{html.escape(r['test_light'])} / seed {r['seed']}</a> "
                      f"{status}</li>")

@@ -272,3 +272,20 @@ def test_legend_outside_axes_and_failures_below_the_data(monkeypatch, tmp_path, 
         assert cross_y and data_y
         assert min(data_y) - max(cross_y) > 0.04 * box.height
     plt.close(fig)
+
+
+def test_report_lists_methods_not_run_as_not_run_not_as_failures(tmp_path):
+    from benchmark.outputs import build_outputs
+
+    paths = []
+    stored = [r | {"status": "failed"} if r["status"] == "not_run" else r for r in _with_not_run()]  # a result file stores not-run as failed + "not run:"
+    for i, r in enumerate(stored):
+        p = tmp_path / "runs" / f"{i}" / "results.json"
+        write_result(p, r)
+        paths.append(p)
+    html = build_outputs(paths, tmp_path / "out", grids=False)["report.html"].read_text()
+    failed = html.split("<h2 class=fail>Failed runs</h2>", 1)[1].split("</ul>", 1)[0]
+    assert "ours" in failed and "irgs" not in failed and "r3dgs" not in failed  # only the crash
+    assert "5 runs, 1 failed, 4 jobs of methods not run here (not failures)" in html
+    listed = html.split("<h2>Per-run result files</h2>", 1)[1]
+    assert listed.count("not run</li>") == 4 and listed.count("<span class=fail>failed</span>") == 1
