@@ -14,6 +14,12 @@ skipped when their outputs exist, so scoring another test light or re-running `m
                   (same cameras, one timestep): the IRGS-like baseline that isolates the paper's thesis
 * ``<method>@<budget>``  the same at a fraction of the profile's iterations (``@0.25``) and/or a Gaussian
                   cap (``@cap10000``), joined with ``+`` (``lumimotion@0.5+cap10000``)
+
+The variants with a stage 2 also run the relight diagnostic (method/diagnose.py) for each test light the
+grid scores: all test views, the run's ``stage2.dirs_eval`` directions capped at :data:`DIAGNOSE_MAX_DIRS`.
+Its record, ``RUN/diagnose/<test light>/diagnose.json``, is reused when it has the current steps and all
+test views, so a rescore computes nothing; the steps' PSNR and LPIPS go into meta.json under ``diagnose``
+(one block per test light), and from there into each configuration's results.json.
 """
 from __future__ import annotations
 
@@ -31,6 +37,7 @@ VARIANTS = {
     "wo_P": {"overrides": ["model.separation=false"], "static": False, "stage2": True},
     "static": {"overrides": [], "static": True, "stage2": True},
 }
+DIAGNOSE_MAX_DIRS = 128  # directions per pixel of the diagnostic: the run's dirs_eval, at most this
 _BUDGET = re.compile(r"^(?:(?P<frac>\d*\.?\d+)|cap(?P<cap>\d+))$")
 
 
@@ -52,7 +59,10 @@ def parse_budget(spec: str) -> tuple[float, int]:
 
 
 class LumiMotionAdapter(MethodAdapter):
-    version = "2"  # = method/predictions.py VERSION: the predictions of this version are reused, others redone
+    # the grid reuses a predictions folder of this version, others are redone. 2: relight_scaled/ (method/
+    # predictions.py VERSION); 3: meta.json carries the relight diagnostic (the same predictions as 2), so a
+    # rescore of a version-2 folder predicts again (no training) and its results get the block
+    version = "3"
 
     def __init__(self, name: str = "lumimotion", budget: str | None = None):
         base = name.split("@", 1)[0]
@@ -126,7 +136,43 @@ class LumiMotionAdapter(MethodAdapter):
             (Path(out_dir) / "meta.json").unlink(missing_ok=True)
         keep = {k: meta[k] for k in ("timings", "device", "model_size", "relight_albedo_scale") if k in meta}
         keep["run_dir"] = str(run_dir)
+        if self.variant["stage2"]:  # wo_stage2's albedo is the canonical colour: nothing to take apart
+            keep["diagnose"] = {t: diagnose_block(run_dir, Path(scene_dir), t) for t in dict.fromkeys(test_lights)}
         return keep
+
+
+def _reusable_record(path: Path, views: int) -> dict | None:
+    """The stored diagnostic record at ``path`` when it has the current steps and all ``views`` test views."""
+    import json
+
+    from method.diagnose import STEPS
+
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    steps = rec.get("steps") if isinstance(rec, dict) else None
+    if not isinstance(steps, dict) or set(steps) != {name for name, _ in STEPS} or rec.get("views") != views:
+        return None
+    return rec
+
+
+def diagnose_block(run_dir: Path, scene_dir: Path, test_light: str) -> dict:
+    """The relight diagnostic of ``run_dir`` under ``test_light`` on ``scene_dir``'s test views, as kept in
+    the results: {views, dirs, protocol, steps: {name: {psnr, lpips}}}; computed once per (run, test light)."""
+    from lumibench import layout
+    from method import diagnose as dg
+    from method.relight import read_run_config
+
+    views = len(layout.read_transforms(scene_dir, "test").frames)
+    rec = _reusable_record(Path(run_dir) / "diagnose" / test_light / "diagnose.json", views)
+    if rec is None:
+        dirs = min(int(read_run_config(run_dir)["stage2"]["dirs_eval"]), DIAGNOSE_MAX_DIRS)
+        # the scene the benchmark scores on (the static variant trained on its static twin)
+        rec = dg.diagnose(run_dir, test_light, dirs=dirs, data=scene_dir, progress=False)
+    return {"views": int(rec["views"]), "dirs": int(rec["dirs"]), "protocol": str(rec.get("protocol", "lumimotion")),
+            "steps": {name: {"psnr": float(s["psnr"]), "lpips": float(s["lpips"])}
+                      for name, s in rec["steps"].items()}}
 
 
 

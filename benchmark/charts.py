@@ -1,4 +1,5 @@
-"""Charts (matplotlib, Agg): quality vs training time (Pareto front), vs Gaussian count, seed stability.
+"""Charts (matplotlib, Agg): quality vs training time (Pareto front), vs Gaussian count, seed stability, and
+where the relight error comes from (the relight diagnostic, when some result carries one).
 
 Failed runs are drawn (a red cross in a row kept free under the data, counted in the legend), never
 dropped silently. An external method that has not been run is no failure: it draws nothing and is named
@@ -8,6 +9,7 @@ works from result dictionaries only, so `make eval` rebuilds them from stored re
 """
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -289,10 +291,102 @@ def stability_chart(results: Sequence[dict], path: Path) -> Path:
     return _save(fig, path)
 
 
+# the relight diagnostic's steps (method/diagnose.py) drawn as gains over "ours": key, legend label, colour, hatch
+DIAGNOSE_GAINS = (
+    ("gt_albedo", "GT albedo", "#4c72b0", ""),
+    ("gt_roughness", "GT roughness", "#64b5cd", ""),
+    ("gt_normal", "GT normals", "#55a868", ""),
+    ("gt_all", "GT albedo + roughness + normals", "#2f2f2f", ""),
+    ("ours_unshadowed", "ours without our shadows", "#dd8452", "//"),
+    ("gt_all_unshadowed", "all three GT, without our shadows", "#c44e52", "//"),
+)
+
+
+def has_diagnose(results: Sequence[dict]) -> bool:
+    """True when some successful result carries a relight-diagnostic block (the chart is drawn then)."""
+    return any(r["status"] == "ok" and isinstance(r.get("diagnose"), dict) for r in results)
+
+
+def _diagnose_means(runs: Sequence[dict]) -> dict[str, float] | None:
+    """Mean PSNR per step over the seeds of one (method, scene, configuration); None without a block."""
+    blocks = [r["diagnose"]["steps"] for r in runs if r["status"] == "ok" and isinstance(r.get("diagnose"), dict)]
+    if not blocks:
+        return None
+    names = set.intersection(*(set(b) for b in blocks))
+    return {n: float(np.mean([b[n]["psnr"] for b in blocks])) for n in names}
+
+
+def relight_error_sources_chart(results: Sequence[dict], path: Path) -> Path:
+    """Per configuration, per scene and method: our relight PSNR in the diagnostic (under the group) and the
+    PSNR gained by each ground-truth swap or by dropping our shadows (bars), mean over seeds."""
+    from matplotlib.patches import Patch
+
+    plt = _plt()
+    diag = [r for r in results if r["status"] == "ok" and isinstance(r.get("diagnose"), dict)]
+    methods = list(dict.fromkeys(r["method"] for r in diag))
+    confs = list(dict.fromkeys((r["train_light"], r["test_light"]) for r in diag))
+    # per panel, the scenes where one of these methods has a run (a failed one too: it is named, not dropped)
+    scenes_of = {c: list(dict.fromkeys(r["scene"] for r in results if r["method"] in methods and not is_not_run(r)
+                                       and (r["train_light"], r["test_light"]) == c)) for c in confs}
+    n_scenes = max(len(v) for v in scenes_of.values())
+    n_groups = n_scenes * len(methods) + (n_scenes - 1) * 0.5
+    fig_w = max(8.0, 1.15 * n_groups + 4.0)  # the legend takes about 2.5 in on the right
+    fig, axes = plt.subplots(len(confs), 1, figsize=(fig_w, 3.3 * len(confs) + 0.8),
+                             layout="constrained", sharey=True, squeeze=False)
+    fig.get_layout_engine().set(h_pad=0.15)  # room for the scene names under each panel's labels
+    # text wrapped to the figure's width, so that it never widens the image past the panels
+    fig.suptitle(textwrap.fill("Where the relight error comes from: the relight PSNR gained when one of our buffers "
+                               "is replaced by the ground truth, or when our traced shadows are dropped (bars); under "
+                               "each group: the method and its own relight PSNR in the diagnostic ('ours')",
+                               int((fig_w - 3.0) * 12)), fontsize=10, x=0.01, ha="left")
+    width = 0.8 / len(DIAGNOSE_GAINS)
+    for ax, (train, test) in zip(axes[:, 0], confs):
+        ticks, labels, scenes = [], [], scenes_of[train, test]
+        for i, scene in enumerate(scenes):
+            for j, m in enumerate(methods):
+                x = i * (len(methods) + 0.5) + j
+                runs = [r for r in results if (r["method"], r["scene"], r["train_light"], r["test_light"])
+                        == (m, scene, train, test) and not is_not_run(r)]
+                means = _diagnose_means(runs)
+                ticks.append(x)
+                if means is None or "ours" not in means:
+                    labels.append(f"{m}\n{'failed' if runs and all(r['status'] != 'ok' for r in runs) else 'no data'}")
+                    continue
+                labels.append(f"{m}\n{means['ours']:.1f} dB")
+                for k, (key, label, colour, hatch) in enumerate(DIAGNOSE_GAINS):
+                    if key in means:
+                        ax.bar(x + (k - (len(DIAGNOSE_GAINS) - 1) / 2) * width, means[key] - means["ours"], width,
+                               color=colour, hatch=hatch, edgecolor="white" if not hatch else "0.95", lw=0.5)
+            centre = i * (len(methods) + 0.5) + (len(methods) - 1) / 2
+            ax.annotate(scene, xy=(centre, 0), xycoords=("data", "axes fraction"), xytext=(0, -30),
+                        textcoords="offset points", ha="center", va="top", fontsize=10, fontweight="bold")
+            if i:
+                ax.axvline(i * (len(methods) + 0.5) - 0.75, color="0.8", lw=0.8)
+        ax.axhline(0, color="0.3", lw=0.8)
+        ax.set_xticks(ticks, labels, fontsize=8)
+        ax.set_xlim(-0.6, ticks[-1] + 0.6 if ticks else 0.6)
+        ax.set_ylabel("PSNR gain over ours (dB)")
+        ax.set_title(f"{train} → {test}", fontsize=10)
+        ax.grid(alpha=0.3, axis="y")
+    handles = [Patch(facecolor=c, hatch=h, edgecolor="0.95" if h else c, label=l) for _, l, c, h in DIAGNOSE_GAINS]
+    fig.legend(handles=handles, loc="outside right upper", fontsize=8, title="bar: PSNR gain with", title_fontsize=8)
+    used = sorted({(r["diagnose"]["views"], r["diagnose"]["dirs"]) for r in diag})
+    seeds = len({r["seed"] for r in diag})
+    note = ("ours: our albedo (scaled as the lumimotion protocol scales it), roughness and normals, with our traced "
+            "shadows; GT: the ground truth's buffer where it has a surface. "
+            + "; ".join(f"{v} test views, {d} directions per pixel" for v, d in used)
+            + (f"; mean over {seeds} seeds" if seeds > 1 else "") + ".")
+    _figure_notes(fig, ["\n" + textwrap.fill(note, int(fig_w * 15)), _not_run_note(results)])
+    return _save(fig, path)
+
+
 def all_charts(results: Sequence[dict], out_dir: Path) -> dict[str, Path]:
     out_dir = Path(out_dir)
-    return {
+    charts = {
         "pareto": pareto_chart(results, out_dir / "pareto.png"),
         "gaussians": gaussians_chart(results, out_dir / "quality_vs_gaussians.png"),
         "stability": stability_chart(results, out_dir / "stability.png"),
     }
+    if has_diagnose(results):
+        charts["relight_error_sources"] = relight_error_sources_chart(results, out_dir / "relight_error_sources.png")
+    return charts

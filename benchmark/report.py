@@ -103,10 +103,22 @@ def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], resu
                   f"{html.escape(r['train_light'])} → {html.escape(r['test_light'])} seed {r['seed']}: "
                   f"{html.escape(str(r.get('error')))}</li>" for r in failed]
         parts.append("</ul>")
+    charts = dict(charts)
+    sources = charts.pop("relight_error_sources", None)
     parts.append("<h2>Charts</h2>")
     for name, p in charts.items():
         parts.append(f"<h3>{html.escape(name)}</h3><a href='{_rel(p, base)}'><img src='{_rel(p, base)}' "
                      f"alt='{html.escape(name)}'></a>")
+    if sources is not None:
+        parts += ["<h2>Where the relight error comes from</h2>",
+                  "<p>Each method's test views relit under the test light with, in turn, its albedo, roughness "
+                  "and normals replaced by the ground truth (then all three), and with its traced shadows dropped "
+                  "(V = 1): a bar is the relight PSNR gained by that step over the method's own relight "
+                  "(<code>python -m method diagnose</code>, scored as the <code>lumimotion</code> protocol "
+                  "scores relight), so a tall bar names where the error comes from and a negative shadow bar "
+                  "says the method's shadows are better than none.</p>",
+                  f"<a href='{_rel(sources, base)}'><img src='{_rel(sources, base)}' "
+                  f"alt='where the relight error comes from'></a>"]
     if grids:
         parts.append("<h2>Ground truth vs prediction</h2><div class=grids>")
         parts += [f"<a href='{_rel(p, base)}'><img src='{_rel(p, base)}' alt='{html.escape(p.stem)}'></a>"

@@ -15,7 +15,9 @@ malformed file is refused with a message naming the file and the field rather th
                  "nvs_moving": {foreground_psnr, moving_psnr, gap_db, moving_pixels} | null},
      "per_image": {"<task>": {"r_NNNN": {metric: value}}},
      "timings": {"<stage>": seconds} | null, "iterations_per_s", "peak_memory_bytes", "device",
-     "model_size": {"gaussians", "parameters", "bytes"} | null, "created": ISO-8601 UTC}
+     "model_size": {"gaussians", "parameters", "bytes"} | null, "created": ISO-8601 UTC,
+     "diagnose" (optional, methods that run the relight diagnostic of method/diagnose.py):
+         {"views": int, "dirs": int, "protocol": str, "steps": {"<step>": {"psnr", "lpips"}}}}
 """
 from __future__ import annotations
 
@@ -117,7 +119,26 @@ def validate(obj: Any, source: str = "<result>") -> dict[str, Any]:
         value = obj.get(key)
         if value is not None and not (isinstance(value, dict) and all(_number(v) for v in value.values())):
             raise _fail(source, key, "must be null or an object of numbers")
+    if obj.get("diagnose") is not None:
+        _validate_diagnose(obj["diagnose"], source)
     return obj
+
+
+def _validate_diagnose(diag: Any, source: str) -> None:
+    """The optional relight-diagnostic block: per step a finite PSNR and LPIPS, and the views/dirs used."""
+    if not isinstance(diag, dict):
+        raise _fail(source, "diagnose", "must be null or an object")
+    for key in ("views", "dirs"):
+        if not isinstance(diag.get(key), int) or isinstance(diag.get(key), bool) or diag[key] < 1:
+            raise _fail(source, f"diagnose.{key}", f"must be a positive integer, got {diag.get(key)!r}")
+    steps = diag.get("steps")
+    if not isinstance(steps, dict) or "ours" not in steps:
+        raise _fail(source, "diagnose.steps", "must be an object of steps that includes 'ours'")
+    for name, step in steps.items():
+        for metric in ("psnr", "lpips"):
+            if not isinstance(step, dict) or not _number(step.get(metric)):
+                got = step.get(metric) if isinstance(step, dict) else step
+                raise _fail(source, f"diagnose.steps.{name}.{metric}", f"must be a finite number, got {got!r}")
 
 
 def write_result(path: str | Path, result: dict[str, Any]) -> None:

@@ -238,6 +238,10 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
         "model_size": _numbers(meta.get("model_size")),
         "created": now_iso(),
     }
+    # the method's relight diagnostic for this test light, as its adapter computed it (method/diagnose.py)
+    diag = meta.get("diagnose")
+    if isinstance(diag, dict) and isinstance(diag.get(test_light), dict):
+        result["diagnose"] = diag[test_light]
     return validate(result, f"result for {pred_dir}")
 
 

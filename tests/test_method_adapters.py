@@ -35,7 +35,10 @@ def test_budget_variants_parse_and_reject_nonsense():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("method", ["lumimotion", "wo_stage2", "wo_dc", "wo_P", "static"])
-def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method):
+def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method, monkeypatch):
+    import baselines_adapters.lumimotion as lm
+
+    monkeypatch.setattr(lm, "DIAGNOSE_MAX_DIRS", 16)  # the relight diagnostic's real path, at a quarter of ci's cost
     name = f"{method}@{BUDGET}"
     runs = tmp_path / "runs" / "ci"
     out = runs / name / ci_dataset.name / "city" / "seed0" / "predictions"
@@ -58,6 +61,15 @@ def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method):
     for kind in ("albedo", "relight", "nvs"):
         assert np.isfinite(res["metrics"][kind]["psnr"]), kind
     assert res["metrics"]["roughness"]["mse"] >= 0
+    # the relight diagnostic of the test light, for the variants with a stage 2, carried into results.json
+    if method == "wo_stage2":
+        assert "diagnose" not in meta and "diagnose" not in res
+    else:
+        block = res["diagnose"]
+        assert block == meta["diagnose"]["sunrise"] and block["dirs"] == 16
+        assert block["views"] == len(list((out / "albedo").glob("*.png")))
+        assert (run_dir / "diagnose" / "sunrise" / "diagnose.json").is_file()
+        assert block["steps"]["ours"]["psnr"] == pytest.approx(res["metrics"]["relight"]["psnr"], abs=1.0)
     # a finished run is reused: predicting again trains nothing (the checkpoints stay as they are)
     cks = sorted((run_dir / "checkpoints").iterdir())
     stamp = [p.stat().st_mtime_ns for p in cks]
