@@ -9,7 +9,7 @@ import numpy as np
 
 from lumibench.config import Node, load_yaml
 from lumibench.errors import UserError
-from lumibench.layout import parse_light
+from lumibench.layout import LIGHT_FILE_SUFFIXES, parse_light
 from lumibench.profiles import CONFIG_DIR
 
 from .envmap import downsample_envmap, read_envmap, rotate_envmap
@@ -17,7 +17,6 @@ from .envmap import downsample_envmap, read_envmap, rotate_envmap
 LIGHTS_YAML = CONFIG_DIR / "lights.yaml"
 ENV_WIDTH, ENV_HEIGHT = 32, 16
 BPY_PREFIX = "bpy:"
-_SUFFIXES = (".hdr", ".exr")
 
 
 @dataclass(frozen=True)
@@ -64,7 +63,7 @@ def load_lights(path: str | Path = LIGHTS_YAML) -> dict[str, LightSpec]:
             raise lights.error(str(name), "is not a valid light name (letters, digits and _ only)")
         node = lights.child(name)
         node.reject_unknown(["source", "rotation_deg", "strength"])
-        source = node.get("source", str, check=lambda s: s.lower().endswith(_SUFFIXES),
+        source = node.get("source", str, check=lambda s: s.lower().endswith(LIGHT_FILE_SUFFIXES),
                           check_msg="must be an .hdr or .exr file")
         rotation = node.get("rotation_deg", float, 0.0, check=lambda r: -360.0 <= r <= 360.0,
                             check_msg="must be in [-360, 360] degrees")
