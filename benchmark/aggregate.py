@@ -9,6 +9,9 @@ is counted as "not run", not as failed: a result with status "not_run", or a fai
 starts with "not run: " (what the job grid records today from that exception's message).
 Reference rows (the paper's published numbers, :func:`reference_groups`) are separate groups with a
 ``reference`` label: they are never averaged with, nor compared against, our runs.
+
+One table states one protocol (:func:`check_consistent` refuses a mix); results of several protocols (a
+grid with ``protocols: [lumimotion, strict]``) are split into one table each by :func:`protocol_tables`.
 """
 from __future__ import annotations
 
@@ -142,6 +145,35 @@ def check_consistent(results: list[dict[str, Any]]) -> dict[str, Any]:
         raise UserError(f"results mix LPIPS networks or weights: {sorted(nets)}")
     first = ok[0]["metric_config"] if ok else {}
     return {"protocol": next(iter(protocols)) if protocols else None, "metric_config": first}
+
+
+@dataclass
+class ProtocolTable:
+    """The results of one protocol, aggregated: one table of the outputs."""
+    protocol: str
+    results: list[dict[str, Any]]
+    groups: list[Group]
+    meta: dict[str, Any]
+    primary: bool = False  # the grid's first protocol: the charts and image grids are drawn from its results
+
+
+def protocol_tables(results: list[dict[str, Any]], order: Iterable[str] | None = None) -> list[ProtocolTable]:
+    """One :class:`ProtocolTable` per protocol present in ``results``, in ``order`` (the grid's protocols,
+    primary first), then any other present protocol in the order of benchmark.protocol.PROTOCOLS. All
+    tables must share the LPIPS network and weights (only masking, averaging and input range differ)."""
+    from .protocol import PROTOCOLS
+
+    present = list(dict.fromkeys(r["protocol"] for r in results))
+    names = [p for p in dict.fromkeys(list(order or ()) + list(PROTOCOLS) + present) if p in present]
+    ok = [r for r in results if r["status"] == "ok"]
+    nets = {(r["metric_config"]["lpips_net"], r["metric_config"]["lpips_weights"]["sha256"]) for r in ok}
+    if len(nets) > 1:
+        raise UserError(f"results mix LPIPS networks or weights: {sorted(nets)}")
+    out = []
+    for i, name in enumerate(names):
+        rs = [r for r in results if r["protocol"] == name]
+        out.append(ProtocolTable(name, rs, aggregate(rs), check_consistent(rs), primary=i == 0))
+    return out
 
 
 def aggregate(results: list[dict[str, Any]]) -> list[Group]:

@@ -5,7 +5,8 @@ Failed runs are drawn (a red cross in a row kept free under the data, counted in
 dropped silently. An external method that has not been run is no failure: it draws nothing and is named
 under the chart as "not run". Log axes carry plain numbers (0.1, 1, 10, 1k; 5k, 10k, 20k) on 1-2-5 or
 decade positions and no minor labels; the legend sits outside the axes, shared by both panels. Each chart
-works from result dictionaries only, so `make eval` rebuilds them from stored results.
+works from result dictionaries only, so `make eval` rebuilds them from stored results. They are drawn from
+the results of one protocol (the grid's primary one, see benchmark.outputs), named in each title.
 """
 from __future__ import annotations
 
@@ -159,6 +160,17 @@ def pareto_front(points: Sequence[tuple[float, float]], higher_better: bool) -> 
     return front
 
 
+def protocol_label(results: Sequence[dict]) -> str:
+    """"protocol: <name>" of the results drawn (one protocol per chart), or "" for none or a mix."""
+    names = {r.get("protocol") for r in results}
+    return f"protocol: {names.pop()}" if len(names) == 1 else ""
+
+
+def _titled(title: str, results: Sequence[dict]) -> str:
+    label = protocol_label(results)
+    return f"{title} [{label}]" if label else title
+
+
 def _save(fig, path: Path) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
@@ -172,7 +184,7 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
     methods = _methods(results)
     colours = _colours(methods)
     fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY) + 1.6, 4.2), layout="constrained")
-    fig.suptitle(title)
+    fig.suptitle(_titled(title, results))
     # methods with successful runs none of which reports x: named under the chart, not dropped silently
     missing_x = [m for m in methods if not any(r["method"] == m and r["status"] == "ok" and xfun(r) is not None
                                                for r in results)
@@ -257,7 +269,8 @@ def stability_chart(results: Sequence[dict], path: Path) -> Path:
     plt = _plt()
     methods = _methods(results)
     fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY) + 1.2, 4.4), layout="constrained")
-    fig.suptitle("Stability across seeds\none column per method; dots: seeds, bar: min-max per scene/config")
+    fig.suptitle(_titled("Stability across seeds", results)
+                 + "\none column per method; dots: seeds, bar: min-max per scene/config")
     seeds = sorted({r["seed"] for r in results if r["status"] == "ok"})
     viridis = plt.get_cmap("viridis")
 

@@ -2,6 +2,11 @@
 
 Every key is validated with lumibench.config.Node, so a typo or a wrong type is reported with the file
 and the key, before any job starts.
+
+``protocols: [lumimotion, strict]`` scores every run under each protocol from the same predictions (one
+result file per protocol, one table per protocol); the first is the grid's primary protocol (its charts
+and image grids). ``protocol: <name>`` (older grids) means ``protocols: [<name>]``; without either key a
+grid scores ``lumimotion`` only.
 """
 from __future__ import annotations
 
@@ -14,6 +19,7 @@ from lumibench.layout import parse_light
 from lumibench.profiles import CONFIG_DIR, available_profiles
 
 from .protocol import PROTOCOLS
+from .results import DEFAULT_PROTOCOL
 
 LPIPS_NETS = ("vgg", "alex")
 
@@ -36,13 +42,24 @@ class Configuration:
 class BenchmarkConfig:
     source: str
     profile: str
-    protocol: str
+    protocols: tuple[str, ...]  # every protocol each run is scored under; the first is the primary one
     lpips_net: str
     scenes: tuple[str, ...]
     configurations: tuple[Configuration, ...]
     methods: tuple[str, ...]
     seeds: tuple[int, ...]
     light_files: tuple[str, ...] = ()  # the .hdr/.exr files the configurations name (by stem), for rendering
+
+    @property
+    def protocol(self) -> str:
+        """The primary protocol (the first listed): charts and image grids use its results."""
+        return self.protocols[0]
+
+    def with_protocols(self, protocols: list[str] | None) -> "BenchmarkConfig":
+        if not protocols:
+            return self
+        _check_protocols(protocols, "--protocols")
+        return replace(self, protocols=tuple(protocols))
 
     def with_methods(self, methods: list[str] | None) -> "BenchmarkConfig":
         if not methods:
@@ -64,9 +81,10 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
             known = sorted(p.stem for p in (CONFIG_DIR / "benchmark").glob("*.yaml"))
             raise UserError(f"no benchmark grid for profile '{profile_or_path}' (known: {', '.join(known)})")
     root = Node(load_yaml(path), str(path))
-    root.reject_unknown(["profile", "protocol", "lpips_net", "scenes", "configurations", "methods", "seeds"])
+    root.reject_unknown(["profile", "protocols", "protocol", "lpips_net", "scenes", "configurations", "methods",
+                         "seeds"])
     profile = root.get("profile", str, choices=available_profiles())
-    protocol = root.get("protocol", str, "lumimotion", choices=list(PROTOCOLS))
+    protocols = _protocols(root)
     lpips_net = root.get("lpips_net", str, "vgg", choices=LPIPS_NETS)
     scenes = _strings(root, "scenes")
     # scene names are checked by the job grid: a rendered scene needs no spec in configs/scenes/
@@ -99,7 +117,7 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
     seeds = root.get("seeds", list, [0])
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
         raise root.error("seeds", f"must be a non-empty list of non-negative integers, got {seeds!r}")
-    return BenchmarkConfig(str(path), profile, protocol, lpips_net, tuple(scenes), tuple(configurations),
+    return BenchmarkConfig(str(path), profile, protocols, lpips_net, tuple(scenes), tuple(configurations),
                            tuple(methods), tuple(seeds), tuple(light_files.values()))
 
 
@@ -114,6 +132,34 @@ def _strings(root: Node, key: str) -> list[str]:
     if len(set(values)) != len(values):
         raise root.error(key, f"lists a name twice: {values!r}")
     return list(values)
+
+
+def _protocols(root: Node) -> tuple[str, ...]:
+    """``protocols: [a, b]``, or ``protocol: a`` (older grids), or the default; never both keys."""
+    has_list = root.data.get("protocols") is not None
+    if has_list and root.data.get("protocol") is not None:
+        raise root.error("protocol", "cannot be given with 'protocols': list every protocol under 'protocols' "
+                                     "(the first is the primary one)")
+    if not has_list:
+        return (root.get("protocol", str, DEFAULT_PROTOCOL, choices=list(PROTOCOLS)),)
+    values = root.get("protocols", list)
+    known = ", ".join(PROTOCOLS)
+    if not values or not all(isinstance(v, str) for v in values):
+        raise root.error("protocols", f"must be a non-empty list of protocol names ({known}), got {values!r}")
+    bad = [v for v in values if v not in PROTOCOLS]
+    if bad:
+        raise root.error("protocols", f"names an unknown protocol '{bad[0]}' (known: {known})")
+    if len(set(values)) != len(values):
+        raise root.error("protocols", f"lists a protocol twice: {values!r}")
+    return tuple(values)
+
+
+def _check_protocols(protocols: list[str], where: str) -> None:
+    bad = [p for p in protocols if p not in PROTOCOLS]
+    if bad:
+        raise UserError(f"{where}: unknown protocol '{bad[0]}' (known: {', '.join(PROTOCOLS)})")
+    if len(set(protocols)) != len(protocols):
+        raise UserError(f"{where}: lists a protocol twice: {' '.join(protocols)}")
 
 
 def _check_methods(methods: list[str], where: str) -> None:

@@ -2,11 +2,18 @@
 
 A method job runs the adapter once (one predictions folder per method, scene, train light and seed,
 shared by every configuration with that train light, so two jobs never write the same folder) and
-scores each of its configurations into ``RESULTS/runs/<method>/<scene>/<train>_to_<test>/seed<k>/
-results.json``. The grid resumes: a job whose result files all exist, validate and say "ok" is not run
-again (failed ones are retried). A job that fails is recorded as a result with status "failed" and the
-cause (the traceback goes to ``error.log`` beside it); the other jobs go on. Jobs are plain dicts handed
-to a top-level function, so they pickle to worker processes and to Ray workers alike.
+scores each of its configurations under each protocol of the grid, from those same predictions, into
+``RESULTS/runs/<method>/<scene>/<train>_to_<test>/seed<k>/`` ``results.json`` (``lumimotion``) and
+``results_<protocol>.json`` (any other, e.g. ``results_strict.json``; benchmark.results.result_filename).
+The grid resumes: a job whose result files all exist, validate, say "ok" and hold their own protocol is
+not run again (failed ones are retried), and a job that runs scores only its missing (configuration,
+protocol) results: a stored result is never recomputed. When the only results missing are of another
+protocol than the stored ones, the predictions those were scored from are scored as they are (the
+adapter does not run, even when its version has moved on since), so both protocols always describe the
+same predictions and adding a protocol to a grid costs its scoring only. A job that fails is recorded as
+a result with status "failed" and the cause in every protocol's file (the traceback goes to
+``error.log`` beside them); the other jobs go on. Jobs are plain dicts handed to a top-level function,
+so they pickle to worker processes and to Ray workers alike.
 """
 from __future__ import annotations
 
@@ -24,7 +31,7 @@ from lumibench.io import atomic_write_text
 from lumibench.progress import track
 
 from .config import BenchmarkConfig, Configuration, known_scenes
-from .results import failed_result, is_finished, write_result
+from .results import DEFAULT_PROTOCOL, failed_result, is_finished, read_result, result_filename, write_result
 
 EXECUTORS = ("local", "ray")
 
@@ -41,8 +48,9 @@ class Paths:
         return self.results / self.profile
 
 
-def result_path(paths: Paths, method: str, scene: str, conf: Configuration, seed: int) -> Path:
-    return paths.out / "runs" / method / scene / conf.slug / f"seed{seed}" / "results.json"
+def result_path(paths: Paths, method: str, scene: str, conf: Configuration, seed: int,
+                protocol: str = DEFAULT_PROTOCOL) -> Path:
+    return paths.out / "runs" / method / scene / conf.slug / f"seed{seed}" / result_filename(protocol)
 
 
 def pred_dir(paths: Paths, method: str, scene: str, train_light: str, seed: int) -> Path:
@@ -58,7 +66,8 @@ def render_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
 
 
 def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
-    """Every (method, scene, train light, seed) job with the configurations it scores.
+    """Every (method, scene, train light, seed) job with the configurations it scores, and for each protocol
+    of the grid the result file of each configuration (``job["results"][protocol]``, in ``tests`` order).
 
     A method whose adapter says it is not seed-dependent runs with the first seed only (its std over
     seeds would be zero by construction; the table's run count shows it).
@@ -76,17 +85,30 @@ def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
                     jobs.append({
                         "kind": "method", "method": method, "scene": scene, "train": train,
                         "tests": [c.test for c in confs], "seed": seed, "profile": paths.profile,
-                        "protocol": config.protocol, "lpips_net": config.lpips_net,
+                        "protocols": list(config.protocols), "lpips_net": config.lpips_net,
                         "scene_dir": str(layout.scene_dir(paths.data, paths.profile, scene)),
                         "pred_dir": str(pred_dir(paths, method, scene, train, seed)),
                         "runs_dir": str(paths.runs / paths.profile),
-                        "results": [str(result_path(paths, method, scene, c, seed)) for c in confs],
+                        "results": {p: [str(result_path(paths, method, scene, c, seed, p)) for c in confs]
+                                    for p in config.protocols},
                     })
     return jobs
 
 
+def job_results(job: dict[str, Any]) -> Iterator[tuple[str, str, str]]:
+    """(protocol, test light, result path) of every result file of a method job."""
+    for protocol in job["protocols"]:
+        for test, path in zip(job["tests"], job["results"][protocol]):
+            yield protocol, test, path
+
+
+def missing_results(job: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """The job's (protocol, test light, path) whose result is not finished under that protocol."""
+    return [(p, t, path) for p, t, path in job_results(job) if not is_finished(path, p, job["lpips_net"])]
+
+
 def job_finished(job: dict[str, Any]) -> bool:
-    return all(is_finished(p, job["protocol"], job["lpips_net"]) for p in job["results"])
+    return not missing_results(job)
 
 
 def job_label(job: dict[str, Any]) -> str:
@@ -95,9 +117,9 @@ def job_label(job: dict[str, Any]) -> str:
     return f"{job['method']} {job['scene']} {job['train']}->{','.join(job['tests'])} seed {job['seed']}"
 
 
-def _identity(job: dict[str, Any], test: str, version: str = "unknown") -> dict[str, Any]:
+def _identity(job: dict[str, Any], test: str, protocol: str, version: str = "unknown") -> dict[str, Any]:
     return {"method": job["method"], "adapter_version": version, "scene": job["scene"], "train_light": job["train"],
-            "test_light": test, "seed": job["seed"], "protocol": job["protocol"], "profile": job["profile"]}
+            "test_light": test, "seed": job["seed"], "protocol": protocol, "profile": job["profile"]}
 
 
 def _cause(exc: BaseException) -> str:
@@ -108,10 +130,11 @@ def _cause(exc: BaseException) -> str:
 
 
 def record_failure(job: dict[str, Any], cause: str, tb: str | None = None, version: str = "unknown") -> None:
-    """Write a failed result for every configuration of ``job`` and ``error.log`` beside it (the traceback,
-    or the cause when there is none, e.g. a worker process that died)."""
-    for test, path in zip(job["tests"], job["results"]):
-        write_result(path, failed_result(_identity(job, test, version), cause))
+    """Write a failed result for every configuration and protocol of ``job`` whose result is not finished
+    (a stored result is kept) and ``error.log`` beside it (the traceback, or the cause when there is none,
+    e.g. a worker process that died)."""
+    for protocol, test, path in missing_results(job):
+        write_result(path, failed_result(_identity(job, test, protocol, version), cause))
         atomic_write_text(Path(path).with_name("error.log"), tb or f"{cause}\n")
 
 
@@ -123,7 +146,7 @@ def failure_log(job: dict[str, Any], outcome: dict[str, Any]) -> Path | None:
     """Where the cause of a failed job is written in full."""
     if job["kind"] == "render":
         return Path(outcome["log"]) if outcome.get("log") else None
-    logs = [Path(p).with_name("error.log") for p in job["results"]]
+    logs = [Path(p).with_name("error.log") for _, _, p in job_results(job)]
     return next((p for p in logs if p.is_file()), None)
 
 
@@ -170,12 +193,15 @@ def _execute_render(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def _execute_method(job: dict[str, Any]) -> dict[str, Any]:
+    """Run the adapter once when the predictions are not reusable, then score every missing (protocol,
+    configuration) result from them; finished results are left as they are."""
     from baselines_adapters.registry import get_adapter
 
     from .predictions import PredictionFolder
     from .score import score
 
     version = "unknown"
+    todo = missing_results(job)
     try:
         adapter = get_adapter(job["method"])
         version = adapter.version
@@ -183,26 +209,45 @@ def _execute_method(job: dict[str, Any]) -> dict[str, Any]:
         if not layout.is_complete(scene):
             raise UserError(f"dataset {scene} is missing or incomplete (render it: make dataset)")
         pdir = Path(job["pred_dir"])
-        if not _predictions_reusable(pdir, job, version):
+        if not _predictions_reusable(pdir, job, version, _stored_versions(job, todo)):
             adapter.run(scene, job["train"], job["tests"], job["seed"], job["profile"], pdir, job["runs_dir"])
         PredictionFolder(pdir).meta()
     except Exception as exc:
         record_failure(job, _cause(exc), traceback.format_exc(), version)
         return {"status": "failed", "error": _cause(exc)}
     failures = []
-    for test, path in zip(job["tests"], job["results"]):
+    for protocol, test, path in todo:
         try:
-            res = score(scene, pdir, job["train"], test, job["protocol"], job["lpips_net"], job["profile"],
+            res = score(scene, pdir, job["train"], test, protocol, job["lpips_net"], job["profile"],
                         scene_name=job["scene"])
             write_result(path, res)
         except Exception as exc:
-            write_result(path, failed_result(_identity(job, test, version), _cause(exc)))
+            write_result(path, failed_result(_identity(job, test, protocol, version), _cause(exc)))
             atomic_write_text(Path(path).with_name("error.log"), traceback.format_exc())
             failures.append(_cause(exc))
-    return {"status": "failed", "error": "; ".join(failures)} if failures else {"status": "ok"}
+    return {"status": "failed", "error": "; ".join(dict.fromkeys(failures))} if failures else {"status": "ok"}
 
 
-def _predictions_reusable(pdir: Path, job: dict[str, Any], version: str) -> bool:
+def _stored_versions(job: dict[str, Any], todo: list[tuple[str, str, str]]) -> set[str] | None:
+    """The adapter version shared by the finished results of every configuration the job still has to score
+    under some protocol, when each such configuration has one (only other protocols are missing): the
+    version of the predictions those results were scored from. None otherwise."""
+    versions: set[str] = set()
+    for test in dict.fromkeys(t for _, t, _ in todo):
+        found = set()
+        for protocol, t, path in job_results(job):
+            if t == test and is_finished(path, protocol, job["lpips_net"]):
+                found.add(read_result(path)["adapter_version"])
+        if len(found) != 1:
+            return None
+        versions |= found
+    return versions if len(versions) == 1 else None
+
+
+def _predictions_reusable(pdir: Path, job: dict[str, Any], version: str, stored: set[str] | None = None) -> bool:
+    """The predictions folder holds this method's, seed's and test lights' predictions at the adapter's
+    version, or at the version the job's stored results were scored from (``stored``: another protocol is
+    scored from the same predictions, never from remade ones)."""
     import json
 
     meta = pdir / "meta.json"
@@ -212,8 +257,8 @@ def _predictions_reusable(pdir: Path, job: dict[str, Any], version: str) -> bool
         m = json.loads(meta.read_text())
     except json.JSONDecodeError:
         return False
-    return (m.get("method") == job["method"] and m.get("version") == version and m.get("seed") == job["seed"]
-            and set(job["tests"]) <= set(m.get("test_lights") or job["tests"]))
+    return (m.get("method") == job["method"] and (m.get("version") == version or m.get("version") in (stored or ()))
+            and m.get("seed") == job["seed"] and set(job["tests"]) <= set(m.get("test_lights") or job["tests"]))
 
 
 # --------------------------------------------------------------------------------------------- executors
@@ -321,6 +366,7 @@ def run_grid(config: BenchmarkConfig, paths: Paths, executor: str = "local", wor
 
 
 def iter_results(jobs: Iterable[dict]) -> Iterator[Path]:
+    """Every result file of ``jobs``, all protocols."""
     for job in jobs:
-        for p in job["results"]:
+        for _, _, p in job_results(job):
             yield Path(p)

@@ -1,43 +1,50 @@
-"""Everything `make eval` shows, built from stored result files: tables, charts, image grids, report."""
+"""Everything `make eval` shows, built from stored result files: tables, charts, image grids, report.
+
+Results of several protocols (a grid's ``protocols``) give one table per protocol in table.md, table.tex,
+table.csv and report.html, primary protocol first; charts and image grids are drawn from the primary
+protocol's results (their titles name it). Nothing here scores: rebuilding reads result files only."""
 from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
 from lumibench.errors import UserError
 from lumibench.io import atomic_write_text
 
 from . import charts, tables
-from .aggregate import aggregate, check_consistent, load_results, published_reference
+from .aggregate import load_results, protocol_tables, published_reference
 from .grids import image_grid
 from .report import write_report
 
 
 def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title: str = "LumiBench results",
-                  grids: bool = True, published: bool = True) -> dict[str, Path]:
+                  grids: bool = True, published: bool = True,
+                  protocols: Sequence[str] | None = None) -> dict[str, Path]:
     """Write table.md/.tex/.csv, charts, grids/ and report.html into ``out_dir``; return their paths.
 
-    ``published``: append the paper's published rows (its own dataset and lights) to the tables as
-    labelled reference sections, never mixed into our means."""
+    ``protocols``: the order of the per-protocol tables, the first being the primary one (charts, image
+    grids); protocols present in the results but not named follow (lumimotion before strict).
+    ``published``: append the paper's published rows (its own dataset and lights) to the lumimotion table
+    (else the primary one) as labelled reference sections, never mixed into our means."""
     out = Path(out_dir)
     results = load_results(result_paths)
     if not results:
         raise UserError("no result files to build tables from")
-    meta = check_consistent(results)
-    groups = aggregate(results)
+    ptables = protocol_tables(results, protocols)
+    primary = ptables[0].results
     written = {
         "table.md": out / "table.md", "table.tex": out / "table.tex", "table.csv": out / "table.csv",
     }
     reference = published_reference() if published else []
-    atomic_write_text(written["table.md"], tables.markdown(groups, meta, reference=reference))
-    atomic_write_text(written["table.tex"], tables.latex(groups, meta, reference=reference))
-    atomic_write_text(written["table.csv"], tables.csv_text(groups, meta, reference=reference))
-    chart_paths = charts.all_charts(results, out)
+    atomic_write_text(written["table.md"], tables.markdown_tables(ptables, reference=reference))
+    atomic_write_text(written["table.tex"], tables.latex_tables(ptables, reference=reference))
+    atomic_write_text(written["table.csv"], tables.csv_tables(ptables, reference=reference))
+    chart_paths = charts.all_charts(primary, out)
     grid_paths = []
     if grids:
         seen = set()
-        for r in results:  # one grid per (method, scene, configuration): the lowest seed that succeeded
+        for r in primary:  # one grid per (method, scene, configuration): the lowest seed that succeeded
             key = (r["method"], r["scene"], r["train_light"], r["test_light"])
             if r["status"] != "ok" or key in seen:
                 continue
@@ -54,7 +61,7 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
                           f"({r['inputs']['pred_dir']})", file=sys.stderr)
                 continue
             grid_paths.append(image_grid(r, target))
-    report = write_report(out / "report.html", groups, meta, results, chart_paths, grid_paths,
+    report = write_report(out / "report.html", ptables, results, chart_paths, grid_paths,
                           {k: v for k, v in written.items()}, title, reference=reference)
     return {**written, **{v.name: v for v in chart_paths.values()}, "report.html": report,
             **{f"grids/{p.name}": p for p in grid_paths}}

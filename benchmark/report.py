@@ -1,4 +1,5 @@
-"""report.html: one self-contained page (relative links) with the table, charts, image grids and failures."""
+"""report.html: one self-contained page (relative links) with the tables (one per protocol, each stating it),
+charts and image grids (of the primary protocol), and failures."""
 from __future__ import annotations
 
 import html
@@ -8,9 +9,10 @@ from typing import Any, Sequence
 
 from lumibench.io import atomic_write_text
 
-from .aggregate import Group, best_methods, is_not_run
+from .aggregate import Group, ProtocolTable, best_methods, is_not_run
 from .results import now_iso
-from .tables import DASH, _cell, _cell_text, _columns, _configurations, _method, _pretty, _runs, caption
+from .tables import (DASH, _cell, _cell_text, _columns, _configurations, _method, _pretty, _runs, caption,
+                     protocol_heading, reference_index)
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
@@ -73,39 +75,61 @@ def reference_table(reference: Sequence[Group]) -> str:
     return "\n".join(out)
 
 
-def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], results: Sequence[dict],
+def _failure_items(results: Sequence[dict]) -> list[str]:
+    """One line per failed run, its protocols joined (a run that failed fails under each protocol)."""
+    seen: dict[tuple, list[str]] = {}
+    for r in results:
+        key = (r["method"], r["scene"], r["train_light"], r["test_light"], r["seed"], str(r.get("error")))
+        seen.setdefault(key, []).append(r["protocol"])
+    return [f"{html.escape(m)} {html.escape(sc)} {html.escape(tr)} → {html.escape(te)} seed {seed} "
+            f"[{html.escape(', '.join(ps))}]: {html.escape(err)}" for (m, sc, tr, te, seed, err), ps in seen.items()]
+
+
+def write_report(path: Path, ptables: Sequence[ProtocolTable], results: Sequence[dict],
                  charts: dict[str, Path], grids: Sequence[Path], tables: dict[str, Path],
                  title: str = "LumiBench results", reference: Sequence[Group] = ()) -> Path:
     base = Path(path).parent
+    primary = ptables[0]
     failed = [r for r in results if r["status"] != "ok" and not is_not_run(r)]
-    not_run = [r for r in results if is_not_run(r)]
-    mc = meta.get("metric_config") or {}
+    runs = primary.results  # a run is counted once, under the primary protocol
+    n_failed = sum(1 for r in runs if r["status"] != "ok" and not is_not_run(r))
+    n_not_run = sum(1 for r in runs if is_not_run(r))
+    names = [t.protocol for t in ptables]
+    mc = primary.meta.get("metric_config") or {}
     weights = mc.get("lpips_weights") or {}
     parts = [f"<!doctype html><html><head><meta charset=utf-8><title>{html.escape(title)}</title>",
              f"<style>{_CSS}</style></head><body>", f"<h1>{html.escape(title)}</h1>",
-             f"<p>{html.escape(caption(meta, groups))}</p>",
              f"<p>LPIPS weights: <code>{html.escape(str(weights.get('file', '?')))}</code> from "
              f"<code>{html.escape(str(weights.get('package', '?')))}</code>, sha256 "
              f"<code>{html.escape(str(weights.get('sha256', '?')))}</code>. "
-             f"{len(results) - len(not_run)} runs, {len(failed)} failed"
-             + (f", {len(not_run)} jobs of methods not run here (not failures)" if not_run else "")
+             f"{len(runs) - n_not_run} runs, {n_failed} failed"
+             + (f", {n_not_run} jobs of methods not run here (not failures)" if n_not_run else "")
+             + (f"; each scored under {len(names)} protocols ({', '.join(names)}) from the same predictions, one "
+                f"table each; charts and image grids use the primary protocol, {primary.protocol}"
+                if len(names) > 1 else "")
              + f". Generated {now_iso()}.</p>",
              "<p>Tables: " + ", ".join(f"<a href='{_rel(p, base)}'>{html.escape(p.name)}</a>"
-                                       for p in tables.values()) + "</p>",
-             "<h2>Table</h2>", html_table(groups)]
+                                       for p in tables.values()) + "</p>"]
+    at = reference_index(ptables)
+    for i, t in enumerate(ptables):
+        heading = "Table" if len(ptables) == 1 else f"Table: {protocol_heading(t, len(ptables))}"
+        parts += [f"<h2 id='table-{html.escape(t.protocol)}'>{html.escape(heading)}</h2>",
+                  f"<p>{html.escape(caption(t.meta, t.groups, reference if i == at else ()))}</p>",
+                  html_table(t.groups)]
     if reference:
         parts += ["<h2>Published numbers (reference, on the paper's own dataset and lights)</h2>",
-                  "<p>As published; not our runs, not comparable row for row with the table above.</p>",
+                  "<p>As published, under the paper's code's conventions (those of the <code>lumimotion</code> "
+                  "protocol); not our runs, not comparable row for row with the tables above.</p>",
                   reference_table(reference)]
     if failed:
         parts += ["<h2 class=fail>Failed runs</h2>", "<ul>"]
-        parts += [f"<li class=fail>{html.escape(r['method'])} {html.escape(r['scene'])} "
-                  f"{html.escape(r['train_light'])} → {html.escape(r['test_light'])} seed {r['seed']}: "
-                  f"{html.escape(str(r.get('error')))}</li>" for r in failed]
+        parts += [f"<li class=fail>{item}</li>" for item in _failure_items(failed)]
         parts.append("</ul>")
     charts = dict(charts)
     sources = charts.pop("relight_error_sources", None)
     parts.append("<h2>Charts</h2>")
+    if len(ptables) > 1:
+        parts.append(f"<p>Scored under the primary protocol, <code>{html.escape(primary.protocol)}</code>.</p>")
     for name, p in charts.items():
         parts.append(f"<h3>{html.escape(name)}</h3><a href='{_rel(p, base)}'><img src='{_rel(p, base)}' "
                      f"alt='{html.escape(name)}'></a>")
@@ -130,8 +154,8 @@ def write_report(path: Path, groups: Sequence[Group], meta: dict[str, Any], resu
         status = ("ok" if r["status"] == "ok" else "not run" if is_not_run(r)
                   else "<span class=fail>failed</span>")
         parts.append(f"<li><a href='{_rel(rp, base)}'>{html.escape(r['method'])} / {html.escape(r['scene'])} / "
-                     f"{html.escape(r['train_light'])}→{html.escape(r['test_light'])} / seed {r['seed']}</a> "
-                     f"{status}</li>")
+                     f"{html.escape(r['train_light'])}→{html.escape(r['test_light'])} / seed {r['seed']} / "
+                     f"{html.escape(r['protocol'])}</a> {status}</li>")
     parts += ["</ul>", "</body></html>"]
     atomic_write_text(path, "\n".join(parts))
     return Path(path)

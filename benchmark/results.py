@@ -1,4 +1,9 @@
-"""Result files: one JSON per scored run, with a schema version, validated on every read.
+"""Result files: one JSON per scored run and protocol, with a schema version, validated on every read.
+
+A run (method, scene, configuration, seed) is scored once per protocol of its grid, from the same
+predictions, into files side by side in its folder: ``results.json`` holds the ``lumimotion`` protocol
+(the paper's conventions; every result published before both protocols were scored is one of these) and
+``results_<protocol>.json`` any other (``results_strict.json``), see :func:`result_filename`.
 
 A result is the only thing aggregation, tables, charts and the job grid's resume logic look at, so a
 malformed file is refused with a message naming the file and the field rather than skewing a table.
@@ -43,6 +48,15 @@ TASK_METRICS = {
 }
 _IDENTITY = (("method", str), ("adapter_version", str), ("scene", str), ("train_light", str),
              ("test_light", str), ("seed", int), ("protocol", str))
+
+
+DEFAULT_PROTOCOL = "lumimotion"  # the protocol of the plain results.json name (and of an old grid without the key)
+
+
+def result_filename(protocol: str = DEFAULT_PROTOCOL) -> str:
+    """The file name of a run's result under ``protocol``: fixed per protocol, whatever a grid's order, so a
+    folder never holds two protocols under one name and old published results.json files stay valid."""
+    return "results.json" if protocol == DEFAULT_PROTOCOL else f"results_{protocol}.json"
 
 
 def now_iso() -> str:

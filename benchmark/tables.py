@@ -11,6 +11,11 @@ published numbers) are listed after our rows of the same configuration, or in th
 configuration is not ours; they are marked with their label ("published, on the paper's dataset"), show
 their std only where one was published, are never bold and never enter our means. An external method
 that has not been run shows "not run" in the Runs column (and under "Not run"), not as a failure.
+
+A grid scored under several protocols gets one table per protocol (``markdown_tables``, ``latex_tables``,
+``csv_tables``: same layout, each stating its protocol; the primary one first; the floors are rows of
+each); the published reference rows go with the ``lumimotion`` table (the paper's code's conventions),
+or with the primary one when there is none.
 """
 from __future__ import annotations
 
@@ -19,7 +24,7 @@ import io
 import math
 from typing import Any, Sequence
 
-from .aggregate import COLUMNS, EXTRA_COLUMNS, SHORT_GROUP, Column, Group, best_methods
+from .aggregate import COLUMNS, EXTRA_COLUMNS, SHORT_GROUP, Column, Group, ProtocolTable, best_methods
 
 DASH = "–"
 
@@ -147,7 +152,8 @@ def _tex_escape(text: str) -> str:
     return text
 
 
-def latex(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[Group] = ()) -> str:
+def latex(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[Group] = (),
+          label: str = "tab:lumibench") -> str:
     cols = _columns(groups)
     spans: list[tuple[str, int]] = []
     for c in cols:
@@ -187,30 +193,80 @@ def latex(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[Gro
                     cells.append(rf"${cell[0]} \pm {cell[1]}$")
             cells.append(_tex_escape(_runs(g)))
             out.append(" & ".join(cells) + r" \\")
-    out += [r"\bottomrule", r"\end{tabular}", "}", r"\label{tab:lumibench}", r"\end{table*}", ""]
+    out += [r"\bottomrule", r"\end{tabular}", "}", rf"\label{{{label}}}", r"\end{table*}", ""]
     return "\n".join(out)
+
+
+def _csv_header(reference: bool) -> list[str]:
+    header = ["protocol", "configuration", "method", "n_ok", "n_failed"]
+    for key in [c.key for c in list(COLUMNS) + list(EXTRA_COLUMNS)] + list(_CSV_EXTRA):
+        header += [f"{key}.mean", f"{key}.std", f"{key}.n"]
+    return header + (["reference"] if reference else [])
+
+
+_CSV_EXTRA = ("time.seconds", "model.gaussians")
+
+
+def _csv_row(g: Group, protocol: str | None, reference: bool) -> list[Any]:
+    row: list[Any] = [protocol if not g.reference else "", g.configuration, g.method, g.n_ok, g.n_failed]
+    for key in [c.key for c in list(COLUMNS) + list(EXTRA_COLUMNS)] + list(_CSV_EXTRA):
+        st = g.stats.get(key)
+        if st is None:
+            row += ["", "", 0]
+        else:
+            row += [f"{st.mean:.6g}", "" if math.isnan(st.std) else f"{st.std:.6g}", st.n]
+    return row + ([g.reference or ""] if reference else [])
 
 
 def csv_text(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[Group] = ()) -> str:
     """One row per (configuration, method): means, stds and counts, machine-readable (no bold).
 
     With reference rows, a last column "reference" holds their label (empty for our rows)."""
-    cols = list(COLUMNS) + list(EXTRA_COLUMNS)
-    extra = ("time.seconds", "model.gaussians")
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    header = ["protocol", "configuration", "method", "n_ok", "n_failed"]
-    for key in [c.key for c in cols] + list(extra):
-        header += [f"{key}.mean", f"{key}.std", f"{key}.n"]
-    w.writerow(header + (["reference"] if reference else []))
+    w.writerow(_csv_header(bool(reference)))
     for g in list(groups) + list(reference):
-        row: list[Any] = [meta.get("protocol") if not g.reference else "", g.configuration, g.method, g.n_ok,
-                          g.n_failed]
-        for key in [c.key for c in cols] + list(extra):
-            st = g.stats.get(key)
-            if st is None:
-                row += ["", "", 0]
-            else:
-                row += [f"{st.mean:.6g}", "" if math.isnan(st.std) else f"{st.std:.6g}", st.n]
-        w.writerow(row + ([g.reference or ""] if reference else []))
+        w.writerow(_csv_row(g, meta.get("protocol"), bool(reference)))
+    return buf.getvalue()
+
+
+# ------------------------------------------------------------------------------ one table per protocol
+
+def reference_index(ptables: Sequence[ProtocolTable]) -> int:
+    """Which table the published reference rows go with: ``lumimotion``'s, else the primary one."""
+    return next((i for i, t in enumerate(ptables) if t.protocol == "lumimotion"), 0)
+
+
+def protocol_heading(t: ProtocolTable, n_tables: int) -> str:
+    return f"Protocol {t.protocol}" + (" (primary: charts and image grids)" if t.primary and n_tables > 1 else "")
+
+
+def markdown_tables(ptables: Sequence[ProtocolTable], reference: Sequence[Group] = ()) -> str:
+    """One Markdown table per protocol under a "## Protocol <name>" heading, primary first."""
+    at = reference_index(ptables)
+    parts = []
+    for i, t in enumerate(ptables):
+        parts += [f"## {protocol_heading(t, len(ptables))}", "",
+                  markdown(t.groups, t.meta, reference=reference if i == at else ())]
+    return "\n".join(parts)
+
+
+def latex_tables(ptables: Sequence[ProtocolTable], reference: Sequence[Group] = ()) -> str:
+    """One LaTeX table per protocol (label ``tab:lumibench-<protocol>``; a single one keeps ``tab:lumibench``)."""
+    at = reference_index(ptables)
+    return "\n".join(latex(t.groups, t.meta, reference=reference if i == at else (),
+                           label="tab:lumibench" if len(ptables) == 1 else f"tab:lumibench-{t.protocol}")
+                     for i, t in enumerate(ptables))
+
+
+def csv_tables(ptables: Sequence[ProtocolTable], reference: Sequence[Group] = ()) -> str:
+    """All protocols' rows in one CSV (the "protocol" column tells them apart), reference rows last."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(_csv_header(bool(reference)))
+    for t in ptables:
+        for g in t.groups:
+            w.writerow(_csv_row(g, t.protocol, bool(reference)))
+    for g in reference:
+        w.writerow(_csv_row(g, None, True))
     return buf.getvalue()

@@ -154,6 +154,48 @@ def test_grid_results_carry_the_diagnostic_of_their_test_light(tmp_path, calls, 
     assert read_result(files["lumimotion", "sunrise"])["diagnose"]["steps"]["ours"]["psnr"] == 20.0
 
 
+def test_both_protocols_diagnose_once_and_an_added_protocol_diagnoses_nothing(tmp_path, calls, no_training,
+                                                                              monkeypatch):
+    """The diagnostic is the adapter's work: one per (run, test light) whatever the number of protocols; a
+    protocol added to a grid later is scored from the stored predictions (even after an adapter version
+    bump), with neither a prediction nor a diagnostic."""
+    import method.predictions
+    from benchmark.config import load_benchmark_config
+    from benchmark.jobgrid import Paths, result_path, run_grid
+
+    data = dataset_root(tmp_path)
+    body = ("profile: ci\nscenes: [fake]\nconfigurations:\n  - {train: city, test: sunrise}\n"
+            "  - {train: city, test: courtyard}\nmethods: [lumimotion]\nseeds: [0]\n")
+    both, old = tmp_path / "both.yaml", tmp_path / "old.yaml"
+    both.write_text("protocols: [lumimotion, strict]\n" + body)
+    old.write_text("protocol: lumimotion\n" + body)
+    predicted = []
+    real = method.predictions.write_predictions
+    monkeypatch.setattr(method.predictions, "write_predictions", lambda *a, **k: predicted.append(1) or real(*a, **k))
+
+    # one grid, both protocols: one diagnostic per test light, carried into both protocols' results
+    config = load_benchmark_config(both)
+    paths = Paths(data, tmp_path / "runs", tmp_path / "results", "ci")
+    _finished_run(paths.runs / "ci" / "lumimotion" / "fake" / "city" / "seed0")
+    assert not run_grid(config, paths, quiet=True).failed
+    assert sorted(c["light"] for c in calls) == ["courtyard", "sunrise"] and len(predicted) == 1
+    for c in config.configurations:
+        blocks = [read_result(result_path(paths, "lumimotion", "fake", c, 0, p))["diagnose"] for p in config.protocols]
+        assert blocks[0] == blocks[1] and blocks[0]["steps"]["ours"]["psnr"] == OURS_PSNR[c.test]
+
+    # an old grid (lumimotion only), then the same grid with strict added after the adapter moved on
+    paths = Paths(data, tmp_path / "runs2", tmp_path / "results2", "ci")
+    _finished_run(paths.runs / "ci" / "lumimotion" / "fake" / "city" / "seed0")
+    assert not run_grid(load_benchmark_config(old), paths, quiet=True).failed
+    assert len(calls) == 4 and len(predicted) == 2
+    monkeypatch.setattr(lm.LumiMotionAdapter, "version", "99")
+    report = run_grid(config, paths, quiet=True)
+    assert len(report.executed) == 1 and not report.failed
+    assert len(calls) == 4 and len(predicted) == 2  # nothing predicted, nothing diagnosed
+    strict = read_result(result_path(paths, "lumimotion", "fake", config.configurations[0], 0, "strict"))
+    assert strict["adapter_version"] == "3" and strict["diagnose"]["steps"]["ours"]["psnr"] == OURS_PSNR["sunrise"]
+
+
 @pytest.mark.parametrize("mutate, field", [
     (lambda d: d.update(views=0), "diagnose.views"),
     (lambda d: d.update(dirs="many"), "diagnose.dirs"),

@@ -9,8 +9,10 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="run/resume the benchmark grid and build tables, charts and report.html",
                        description="Render missing scenes, run and score every (method, scene, configuration, "
-                                   "seed) job not yet finished, then write RESULTS/PROFILE/: per-run results.json, "
-                                   "table.md/.tex/.csv, charts and report.html.")
+                                   "seed) job not yet finished, each under every protocol of the grid from the same "
+                                   "predictions, then write RESULTS/PROFILE/: per-run results.json (lumimotion) and "
+                                   "results_<protocol>.json (others), table.md/.tex/.csv (one table per protocol), "
+                                   "charts and report.html.")
     p.add_argument("--profile", default="ci", help="grid configs/benchmark/<profile>.yaml (default ci)")
     p.add_argument("--config", default=None, help="a grid YAML to use instead of the profile's")
     p.add_argument("--data", default="data", help="dataset root (scenes at DATA/PROFILE/<scene>)")
@@ -22,8 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--methods", nargs="+", default=None, help="override the grid's methods")
     p.add_argument("--scenes", nargs="+", default=None, help="override the grid's scenes")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="override the grid's seeds")
-    p.add_argument("--protocol", default=None, choices=["lumimotion", "strict"],
-                   help="override the grid's protocol (results scored otherwise are re-scored)")
+    p.add_argument("--protocols", "--protocol", dest="protocols", nargs="+", default=None,
+                   choices=["lumimotion", "strict"], metavar="PROTOCOL",
+                   help="override the grid's protocols, the first being the primary one (lumimotion, strict; "
+                        "each has its own result files: nothing stored is re-scored)")
     p.add_argument("--no-render", action="store_true", help="fail instead of rendering missing scenes")
     p.add_argument("--no-grids", action="store_true", help="skip the GT-vs-prediction image grids")
     p.add_argument("--keep-going", action="store_true",
@@ -49,14 +53,14 @@ def run(args: argparse.Namespace) -> int:
         config = replace(config, scenes=tuple(args.scenes))
     if args.seeds:
         config = replace(config, seeds=tuple(args.seeds))
-    if args.protocol:
-        config = replace(config, protocol=args.protocol)
+    config = config.with_protocols(args.protocols)
     paths = Paths(Path(args.data), Path(args.runs), Path(args.results), config.profile)
     report = run_grid(config, paths, args.executor, args.jobs, render=not args.no_render)
     for job, outcome in report.failed:
         print(f"failed: {job_label(job)}: {outcome.get('error')}")
     written = build_outputs(iter_results(method_jobs(config, paths)), paths.out,
-                            title=f"LumiBench results: profile {config.profile}", grids=not args.no_grids)
+                            title=f"LumiBench results: profile {config.profile}", grids=not args.no_grids,
+                            protocols=config.protocols)
     n_done = len(report.executed)
     print(f"{n_done} jobs run, {len(report.skipped)} already finished, {len(report.failed)} failed")
     print(f"wrote {paths.out}/: " + ", ".join(k for k in written if not k.startswith("grids/")), flush=True)

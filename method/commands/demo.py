@@ -63,7 +63,7 @@ def demo_sheet(scene_dir: Path, pred: Path, train: str, test: str, path: Path) -
 
     pf = PredictionFolder(pred)
     frames = layout.read_transforms(scene_dir, "test").frames[:4]
-    # the relight the table's protocol (lumimotion) scores: with the albedo scaled as the benchmark aligns it
+    # the relight the primary protocol (lumimotion) scores: with the albedo scaled as the benchmark aligns it
     relit = "relight_scaled" if pf.has("relight_scaled", test) else "relight"
     cols = ["albedo GT", "albedo ours", "roughness GT", "roughness ours", f"{test} GT",
             f"{test} ours (relit)" + ("\nalbedo scaled" if relit == "relight_scaled" else "")]
