@@ -279,21 +279,95 @@ def _run_local(fn: Callable, jobs: list[dict], workers: int) -> Iterator[tuple[d
                 yield job, {"status": "failed", "error": f"worker process failed: {_cause(exc)}", "lost": True}
 
 
-def _run_ray(fn: Callable, jobs: list[dict], workers: int) -> Iterator[tuple[dict, dict]]:
+def _ray_address_problem(address: str) -> str | None:
+    """Why RAY_ADDRESS cannot name a reachable Ray cluster (a one-line message), or None when it may:
+    ray.init retries an unreachable head for minutes, so a host:port refusing a TCP connection is refused
+    here first."""
+    import importlib.util
+    import socket
+
+    if address in ("auto", "local"):
+        return None
+    rest = address
+    if address.startswith("ray://"):
+        if importlib.util.find_spec("grpc") is None:
+            return (f"RAY_ADDRESS={address} goes through the Ray client, which needs pip install 'ray[client]' "
+                    f"(or run on a node of the cluster with RAY_ADDRESS=<head>:6379)")
+        rest = address[len("ray://"):]
+    host, sep, port = rest.rstrip("/").rpartition(":")
+    if not sep or not port.isdigit() or "/" in rest.rstrip("/"):
+        return None  # not host:port: let Ray say what it makes of it
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+    except OSError as exc:
+        return (f"cannot reach the Ray cluster at RAY_ADDRESS={address} ({type(exc).__name__}: "
+                f"{exc.strerror or exc}): start it (ray start --head --port=6379 on the head) or point RAY_ADDRESS "
+                f"at its head's host:port (unset: a local Ray instance)")
+    return None
+
+
+def _ray_token_hint(address: str | None) -> str:
+    """The likely cause when a cluster refuses a driver that does not send Ray's auth token: Ray (2.60 here)
+    enables token authentication on a cluster started where ~/.ray/auth_token exists, and a driver sends
+    the token only with RAY_AUTH_MODE=token."""
+    if not address or os.environ.get("RAY_AUTH_MODE", "").lower() == "token":
+        return ""
+    return ("; if its nodes use token authentication (Ray's default where ~/.ray/auth_token exists), set "
+            "RAY_AUTH_MODE=token here, with the cluster's token in ~/.ray/auth_token or RAY_AUTH_TOKEN")
+
+
+def ray_connect(workers: int = 1) -> None:
+    """Connect to the cluster at RAY_ADDRESS, or start a local Ray instance with ``workers`` CPUs when it is
+    unset; nothing when Ray is initialised already (e.g. by the caller). One-line UserError otherwise."""
+    import logging
+
     try:
         import ray
     except ImportError:
         raise UserError("--executor ray needs ray: pip install 'ray[default]' (or use --executor local)") from None
-    if not ray.is_initialized():
-        address = os.environ.get("RAY_ADDRESS") or None
-        try:
-            ray.init(address=address, ignore_reinit_error=True, include_dashboard=False, log_to_driver=False,
-                     num_cpus=None if address else max(workers, 1))
-        except Exception as exc:
-            raise UserError(f"cannot start or reach Ray ({'RAY_ADDRESS=' + address if address else 'local'}): "
-                            f"{type(exc).__name__}: {exc}") from None
-    remote = ray.remote(num_cpus=1, max_retries=0)(fn)
-    pending = {remote.remote(job): job for job in jobs}
+    if ray.is_initialized():
+        return
+    address = os.environ.get("RAY_ADDRESS") or None
+    where = f"the Ray cluster at RAY_ADDRESS={address}" if address else "a local Ray instance"
+    problem = _ray_address_problem(address) if address else None
+    if problem:
+        raise UserError(problem)
+    try:
+        ray.init(address=address, ignore_reinit_error=True, include_dashboard=False, log_to_driver=False,
+                 logging_level=logging.WARNING, num_cpus=None if address else max(workers, 1))
+    except Exception as exc:
+        cause = " ".join(str(exc).split())[:300]
+        raise UserError(f"cannot connect to {where}: {type(exc).__name__}: {cause}{_ray_token_hint(address)}") from None
+    if ray.cluster_resources().get("CPU", 0) < 1:
+        print(f"warning: {where} has no CPUs yet; the jobs (1 CPU each) wait until a node with CPUs joins "
+              f"(ray start --address=<head>:<port> --num-cpus=N)", flush=True)
+
+
+def _ray_task(fn: Callable, job: dict[str, Any], cwd: str) -> dict[str, Any]:
+    """One job on a Ray worker. It runs from the driver's working directory, so that relative paths (DATA,
+    RUNS, RESULTS, as `make eval` passes them) name the same files as on the driver: every node needs the
+    repository and the data, runs and results folders at the driver's paths. The outcome says where it ran."""
+    import socket
+
+    import ray
+
+    where = {"node": ray.get_runtime_context().get_node_id(), "host": socket.gethostname(), "pid": os.getpid()}
+    try:
+        os.chdir(cwd)
+    except OSError as exc:
+        return {"status": "failed", "lost": True, **where,
+                "error": f"Ray node {where['host']} cannot enter the driver's directory {cwd} ({exc.strerror}): every "
+                         f"node needs the repository and the data, runs and results folders at the driver's paths"}
+    return {**fn(job), **where}
+
+
+def _run_ray(fn: Callable, jobs: list[dict], workers: int) -> Iterator[tuple[dict, dict]]:
+    ray_connect(workers)
+    import ray
+
+    remote = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
+    cwd = os.getcwd()
+    pending = {remote.remote(fn, job, cwd): job for job in jobs}
     while pending:
         done, _ = ray.wait(list(pending), num_returns=1)
         for ref in done:
@@ -304,6 +378,19 @@ def _run_ray(fn: Callable, jobs: list[dict], workers: int) -> Iterator[tuple[dic
                 yield job, {"status": "failed", "error": f"ray task failed: {_cause(exc)}", "lost": True}
 
 
+def placement_summary(outcomes: list[tuple[dict, dict]]) -> str | None:
+    """One line: how many jobs ran on which Ray node (node id prefix, host), or None when none says."""
+    counts: dict[tuple[str, str], int] = {}
+    for _, outcome in outcomes:
+        if outcome.get("node"):
+            key = (outcome["node"][:8], outcome.get("host", "?"))
+            counts[key] = counts.get(key, 0) + 1
+    if not counts:
+        return None
+    nodes = ", ".join(f"node {n} on {h}: {c}" for (n, h), c in sorted(counts.items()))
+    return f"ray: {sum(counts.values())} jobs on {len(counts)} node{'s' if len(counts) > 1 else ''} ({nodes})"
+
+
 def run_jobs(jobs: list[dict], executor: str = "local", workers: int = 1, description: str = "jobs",
              quiet: bool = False) -> list[tuple[dict, dict]]:
     """Run ``jobs`` with a progress bar; return (job, outcome) pairs. Lost workers are recorded as failures."""
@@ -311,8 +398,10 @@ def run_jobs(jobs: list[dict], executor: str = "local", workers: int = 1, descri
         raise UserError(f"unknown executor '{executor}' (known: {', '.join(EXECUTORS)})")
     if not jobs:
         return []
-    threads = 1 if workers > 1 else None
+    threads = 1 if workers > 1 or executor == "ray" else None  # a Ray task holds one CPU
     jobs = [dict(job, threads=threads) for job in jobs]
+    if executor == "ray":
+        ray_connect(workers)  # before the progress bar: a refused address is one line, not a stalled bar
     runner = _run_local if executor == "local" else _run_ray
     outcomes = []
     for job, outcome in track(runner(execute, jobs, workers), total=len(jobs), description=description,
@@ -320,6 +409,9 @@ def run_jobs(jobs: list[dict], executor: str = "local", workers: int = 1, descri
         if outcome.get("lost") and job["kind"] == "method":
             record_failure(job, outcome["error"])
         outcomes.append((job, outcome))
+    summary = placement_summary(outcomes) if executor == "ray" and not quiet else None
+    if summary:
+        print(summary, flush=True)
     return outcomes
 
 
