@@ -12,7 +12,7 @@ from typing import Iterable, Sequence
 from lumibench.errors import UserError
 from lumibench.io import atomic_write_text
 
-from . import charts, tables
+from . import charts, tables, thesis
 from .aggregate import load_results, protocol_tables, published_reference
 from .grids import image_grid
 from .report import write_report
@@ -41,6 +41,10 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
     atomic_write_text(written["table.tex"], tables.latex_tables(ptables, reference=reference))
     atomic_write_text(written["table.csv"], tables.csv_tables(ptables, reference=reference))
     chart_paths = charts.all_charts(primary, out)
+    thesis_paths = thesis.write(primary, out, ptables[0].protocol)  # dynamic against static, when both ran
+    written.update({k: v for k, v in thesis_paths.items() if k.endswith(".md")})
+    if "thesis.png" in thesis_paths:
+        chart_paths["thesis"] = thesis_paths["thesis.png"]
     grid_paths = []
     if grids:
         seen = set()

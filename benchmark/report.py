@@ -127,6 +127,17 @@ def write_report(path: Path, ptables: Sequence[ProtocolTable], results: Sequence
         parts.append("</ul>")
     charts = dict(charts)
     sources = charts.pop("relight_error_sources", None)
+    thesis_png = charts.pop("thesis", None)
+    if thesis_png is not None:
+        md = tables.get("thesis.md")
+        parts += ["<h2>Dynamic against static capture</h2>",
+                  "<p>The question the benchmark was built for: LumiMotion trained on the dynamic capture against the "
+                  "same pipeline trained on the static capture, per scene (bars: the change of the seed means) and "
+                  "over scenes (whisker: std over scenes); the paper's claims as dashed lines"
+                  + (f"; every metric, per scene, with seeds: <a href='{_rel(md, base)}'>{html.escape(md.name)}</a>"
+                     if md is not None else "") + ".</p>",
+                  f"<a href='{_rel(thesis_png, base)}'><img src='{_rel(thesis_png, base)}' "
+                  f"alt='dynamic against static capture'></a>"]
     parts.append("<h2>Charts</h2>")
     if len(ptables) > 1:
         parts.append(f"<p>Scored under the primary protocol, <code>{html.escape(primary.protocol)}</code>.</p>")
