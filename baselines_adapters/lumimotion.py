@@ -12,8 +12,10 @@ skipped when their outputs exist, so scoring another test light or re-running `m
 * ``wo_P``        no static/dynamic separation: P = 1 for every Gaussian
 * ``static``      the same pipeline without the deformation network, on ``<scene>_statictimestepNNNN``
                   (same cameras, one timestep): the IRGS-like baseline that isolates the paper's thesis
-* ``<method>@<budget>``  the same at a fraction of the profile's iterations (``@0.25``) and/or a Gaussian
-                  cap (``@cap10000``), joined with ``+`` (``lumimotion@0.5+cap10000``)
+* ``<method>@<budget>``  the same at a fraction of the profile's iterations (``@0.25``), a Gaussian cap
+                  (``@cap10000``) and/or a share of the training frames, kept evenly over time
+                  (``@frames0.25``: method/data.py even_subset, the run's ``data.train_frames``), joined with
+                  ``+`` (``lumimotion@0.5+cap10000``, ``static@frames0.25+cap2000``)
 
 The variants with a stage 2 also run the relight diagnostic (method/diagnose.py) for each test light the
 grid scores: all test views, the run's ``stage2.dirs_eval`` directions capped at :data:`DIAGNOSE_MAX_DIRS`.
@@ -38,24 +40,41 @@ VARIANTS = {
     "static": {"overrides": [], "static": True, "stage2": True},
 }
 DIAGNOSE_MAX_DIRS = 128  # directions per pixel of the diagnostic: the run's dirs_eval, at most this
-_BUDGET = re.compile(r"^(?:(?P<frac>\d*\.?\d+)|cap(?P<cap>\d+))$")
+_BUDGET = re.compile(r"^(?:(?P<frac>\d*\.?\d+)|cap(?P<cap>\d+)|frames(?P<frames>[^+]*))$")
+_SHARE = re.compile(r"^\d*\.?\d+$")
 
 
-def parse_budget(spec: str) -> tuple[float, int]:
-    """'0.25', 'cap10000' or '0.5+cap10000' -> (iteration fraction, Gaussian cap or 0)."""
-    frac, cap = 1.0, 0
+def parse_budget(spec: str) -> tuple[float, int, float]:
+    """'0.25', 'cap10000', 'frames0.25' or any of them joined with '+' ('0.5+cap10000+frames0.25') ->
+    (iteration fraction, Gaussian cap or 0, share of the training frames kept); one-line errors."""
+    frac, cap, frames = 1.0, 0, 1.0
+    seen: set[str] = set()
     for part in spec.split("+"):
         m = _BUDGET.match(part.strip())
         if not m:
-            raise UserError(f"unknown budget '{part}' in '{spec}': use a fraction of the iterations (0.25) "
-                            f"and/or a Gaussian cap (cap10000), joined with '+'")
-        if m.group("frac"):
+            raise UserError(f"unknown budget '{part}' in '{spec}': use a fraction of the iterations (0.25), a "
+                            f"Gaussian cap (cap10000) and/or a share of the training frames (frames0.25), joined "
+                            f"with '+'")
+        kind = next(k for k in ("frac", "cap", "frames") if m.group(k) is not None)
+        if kind in seen:
+            what = {"frac": "iteration fraction", "cap": "Gaussian cap", "frames": "share of frames"}[kind]
+            raise UserError(f"budget '{spec}' gives the {what} twice")
+        seen.add(kind)
+        if kind == "frac":
             frac = float(m.group("frac"))
             if not 0 < frac <= 4:
                 raise UserError(f"budget fraction {frac} must be in (0, 4]")
-        else:
+        elif kind == "cap":
             cap = int(m.group("cap"))
-    return frac, cap
+            if cap < 1:
+                raise UserError(f"budget '{spec}': the Gaussian cap must be at least 1 (cap2000)")
+        else:
+            raw = m.group("frames")
+            if not _SHARE.match(raw) or not 0 < float(raw) <= 1:
+                raise UserError(f"budget 'frames{raw}' in '{spec}': the share of the training frames kept must be "
+                                f"a number in (0, 1] (frames0.25 keeps every 4th frame)")
+            frames = float(raw)
+    return frac, cap, frames
 
 
 class LumiMotionAdapter(MethodAdapter):
@@ -78,7 +97,7 @@ class LumiMotionAdapter(MethodAdapter):
 
         out = list(self.variant["overrides"])
         if self.budget:
-            frac, cap = parse_budget(self.budget)
+            frac, cap, frames = parse_budget(self.budget)
             cfg = load_method_config(profile)
             if frac != 1.0:  # every schedule point scales with the run (0 stays 0: a mechanism that is off)
                 for stage, keys in ITERATION_KEYS.items():
@@ -88,6 +107,8 @@ class LumiMotionAdapter(MethodAdapter):
             if cap:
                 out.append(f"stage1.max_gaussians={cap}")
                 out.append(f"stage1.init_points={min(cap, cfg['stage1']['init_points'])}")
+            if frames != 1.0:
+                out.append(f"data.train_frames={frames}")
         return out
 
     def scene_for(self, scene_dir: Path) -> Path:

@@ -158,5 +158,8 @@ def _validate(cfg: dict) -> None:
     for key in ("opacity_reset_every", "eval_every"):
         if s[key] < 0:
             raise UserError(f"key 'stage1.{key}' must be >= 0 (0: never; got {s[key]})")
+    if not 0 < cfg["data"]["train_frames"] <= 1:
+        raise UserError(f"key 'data.train_frames' must be in (0, 1] (the share of the training frames kept; "
+                        f"got {cfg['data']['train_frames']})")
     if any(not 0 <= c <= 1 for c in cfg["data"]["background"]):
         raise UserError(f"key 'data.background' must be three values in [0, 1] (got {cfg['data']['background']})")

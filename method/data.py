@@ -140,7 +140,26 @@ def _frame_time(frame: dict, path: Path, fp: str) -> float:
     return float(t)
 
 
-def load_views(scene: Path, light: str, split: str, background: np.ndarray, device, with_masks: bool) -> tuple[float, list[View]]:
+def even_subset(n: int, fraction: float) -> list[int]:
+    """Which of ``n`` time-ordered frames a run that keeps ``fraction`` of them trains on: m = round(fraction n)
+    frames (at least 2 when n >= 2, so the first and the last time are always kept) at the positions
+    round(j (n - 1) / (m - 1)), j = 0 .. m - 1, i.e. every 1 / fraction-th frame evenly over the time range (the
+    gaps differ by at most one frame). No randomness: every seed trains on the same frames, so the seeds'
+    spread is the training's, not the choice of frames'."""
+    if not 0 < fraction <= 1:
+        raise UserError(f"the share of training frames kept must be in (0, 1], got {fraction}")
+    if n <= 0:
+        return []
+    m = min(n, max(min(n, 2), int(round(fraction * n))))
+    if m == n:
+        return list(range(n))
+    return sorted({int(round(j * (n - 1) / (m - 1))) for j in range(m)})
+
+
+def load_views(scene: Path, light: str, split: str, background: np.ndarray, device, with_masks: bool,
+               keep: float = 1.0) -> tuple[float, list[View]]:
+    """The views of ``split`` in frame order; ``keep`` < 1: only the frames :func:`even_subset` keeps of them
+    ordered by time (the images of the others are not read)."""
     path = Path(scene) / f"transforms_{split}.json"
     if not path.is_file():
         raise UserError(f"missing {path}")
@@ -152,6 +171,10 @@ def load_views(scene: Path, light: str, split: str, background: np.ndarray, devi
         raise UserError(f"{path}: corrupt transforms file ({type(exc).__name__}: {exc})") from None
     if not (math.isfinite(angle) and 0.0 < angle < math.pi):
         raise UserError(f"{path}: camera_angle_x is {angle}, expected a field of view in (0, pi) radians")
+    if keep < 1.0:
+        times = [_frame_time(f, path, _clean(str(f["file_path"]))) for f in frames]
+        by_time = sorted(range(len(frames)), key=lambda i: (times[i], i))
+        frames = [frames[i] for i in sorted(by_time[k] for k in even_subset(len(frames), keep))]
     views = []
     for f in frames:
         fp = _clean(str(f["file_path"]))
@@ -196,11 +219,13 @@ def scene_box(views: list[View], angle: float) -> tuple[torch.Tensor, float]:
 
 
 def load_scene(scene: str | Path, light: str, background=(1.0, 1.0, 1.0), device="cpu",
-               load_test: bool = True) -> SceneData:
+               load_test: bool = True, train_frames: float = 1.0) -> SceneData:
+    """The scene under ``light``: training views (``train_frames`` < 1: the share of them :func:`even_subset`
+    keeps, evenly over time; the method's ``data.train_frames``) and test views."""
     scene = Path(scene)
     check_scene(scene, light)
     bg = np.asarray(background, dtype=np.float32)
-    angle, train = load_views(scene, light, "train", bg, device, with_masks=True)
+    angle, train = load_views(scene, light, "train", bg, device, with_masks=True, keep=train_frames)
     test = []
     if load_test and (scene / "transforms_test.json").is_file() and (scene / light / "test").is_dir():
         _, test = load_views(scene, light, "test", bg, device, with_masks=False)

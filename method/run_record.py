@@ -25,9 +25,14 @@ IDENTITY_KEYS = ("scene_name", "light", "seed")
 SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "data", "stage1", "stage2")}
 
 
-def identity(scene_dir: Path, light: str, seed: int, device, static: bool) -> dict:
-    return {"scene": str(Path(scene_dir).resolve()), "scene_name": Path(scene_dir).name, "light": light,
-            "seed": int(seed), "device": str(device), "static": bool(static)}
+def identity(scene_dir: Path, light: str, seed: int, device, static: bool, train_views: list[str] | None = None) -> dict:
+    """Who the run is; ``train_views``: the stems of the training views it trains on, when not all of them
+    (``data.train_frames`` < 1; recorded, not compared: the setting itself is compared)."""
+    out = {"scene": str(Path(scene_dir).resolve()), "scene_name": Path(scene_dir).name, "light": light,
+           "seed": int(seed), "device": str(device), "static": bool(static)}
+    if train_views is not None:
+        out["train_views"] = list(train_views)
+    return out
 
 
 def read_record(run_dir: Path) -> dict | None:

@@ -170,15 +170,26 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
     return metrics
 
 
+def load_training_scene(scene_dir: str | Path, light: str, cfg: dict, device) -> SceneData:
+    """The scene as a run of ``cfg`` trains on it: the training frames its ``data.train_frames`` keeps."""
+    return load_scene(scene_dir, light, cfg["data"]["background"], device, train_frames=cfg["data"]["train_frames"])
+
+
+def kept_views(data: SceneData, cfg: dict) -> list[str] | None:
+    """The stems of the training views a run trains on, recorded in config.yaml when it keeps a share of
+    them (``data.train_frames`` < 1); None when it trains on all."""
+    return [v.stem for v in data.train] if cfg["data"]["train_frames"] < 1 else None
+
+
 def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: dict, *, seed: int = 0,
                  device: str = "cpu", static: bool | None = None, resume: bool = False, progress: bool = True,
                  write_outputs: bool = True) -> dict:
     """Train stage 1 into ``run_dir``; return the metrics dict (also in metrics_stage1.json)."""
     dev = check_device(device)
-    data = load_scene(scene_dir, light, cfg["data"]["background"], dev)
+    data = load_training_scene(scene_dir, light, cfg, dev)
     static = data.static if static is None else static
     stage = Stage1(data, cfg, static=static, device=dev)
-    ident = run_record.identity(Path(scene_dir), light, seed, dev, static)
+    ident = run_record.identity(Path(scene_dir), light, seed, dev, static, train_views=kept_views(data, cfg))
     return run_stage(stage, Path(run_dir), ident, cfg, seed=seed, resume=resume, progress=progress,
                      write_outputs=write_outputs)
 
@@ -188,7 +199,7 @@ def train_stage2(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
                  data: SceneData | None = None) -> dict:
     """Train stage 2 on the run's finished stage 1; return the metrics dict (also in metrics_stage2.json)."""
     dev = check_device(device)
-    data = data or load_scene(scene_dir, light, cfg["data"]["background"], dev)
+    data = data or load_training_scene(scene_dir, light, cfg, dev)
     stage = Stage2(data, cfg, Path(run_dir), device=dev)
-    ident = run_record.identity(Path(scene_dir), light, seed, dev, data.static)
+    ident = run_record.identity(Path(scene_dir), light, seed, dev, data.static, train_views=kept_views(data, cfg))
     return run_stage(stage, Path(run_dir), ident, cfg, seed=seed, resume=resume, progress=progress)
