@@ -1,4 +1,5 @@
-"""Named lights (configs/lights.yaml) and user env-map files -> the 32 x 16 maps the dataset is lit by."""
+"""Named lights (configs/lights.yaml) and user env-map files -> the maps the dataset is lit by (32 x 16 unless a
+light names its own ``resolution``)."""
 from __future__ import annotations
 
 import importlib.util
@@ -15,7 +16,8 @@ from lumibench.profiles import CONFIG_DIR
 from .envmap import downsample_envmap, read_envmap, rotate_envmap
 
 LIGHTS_YAML = CONFIG_DIR / "lights.yaml"
-ENV_WIDTH, ENV_HEIGHT = 32, 16
+ENV_WIDTH, ENV_HEIGHT = 32, 16  # every light's map unless it names its own resolution
+MAX_ENV_HEIGHT = 1024           # a larger map would only make every shading lookup slower
 BPY_PREFIX = "bpy:"
 
 
@@ -27,6 +29,8 @@ class LightSpec:
     source: Path
     rotation_deg: float = 0.0
     strength: float = 1.0
+    resolution: tuple[int, int] = (ENV_WIDTH, ENV_HEIGHT)  # (width, height) of the prepared map
+    default: bool = True  # rendered when no lights are named (`make dataset` without LIGHTS)
 
 
 def bpy_data_dir() -> Path:
@@ -62,14 +66,31 @@ def load_lights(path: str | Path = LIGHTS_YAML) -> dict[str, LightSpec]:
         if not isinstance(name, str) or not name.isidentifier():
             raise lights.error(str(name), "is not a valid light name (letters, digits and _ only)")
         node = lights.child(name)
-        node.reject_unknown(["source", "rotation_deg", "strength"])
+        node.reject_unknown(["source", "rotation_deg", "strength", "resolution", "default"])
         source = node.get("source", str, check=lambda s: s.lower().endswith(LIGHT_FILE_SUFFIXES),
                           check_msg="must be an .hdr or .exr file")
         rotation = node.get("rotation_deg", float, 0.0, check=lambda r: -360.0 <= r <= 360.0,
                             check_msg="must be in [-360, 360] degrees")
         strength = node.get("strength", float, 1.0, check=lambda s: 0.0 < s < 1e6, check_msg="must be positive")
-        out[name] = LightSpec(name, _resolve_source(source, path.parent), rotation, strength)
+        resolution = node.get("resolution", list, [ENV_WIDTH, ENV_HEIGHT], check=_valid_resolution,
+                              check_msg=f"must be [width, height] in texels with width = 2 x height (an "
+                                        f"equirectangular map) and 1 <= height <= {MAX_ENV_HEIGHT}, e.g. [128, 64]")
+        default = node.get("default", bool, True)
+        out[name] = LightSpec(name, _resolve_source(source, path.parent), rotation, strength,
+                              (int(resolution[0]), int(resolution[1])), default)
     return out
+
+
+def _valid_resolution(value: list) -> bool:
+    if len(value) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+        return False
+    width, height = value
+    return 1 <= height <= MAX_ENV_HEIGHT and width == 2 * height
+
+
+def default_light_names(lights_yaml: str | Path = LIGHTS_YAML) -> list[str]:
+    """The lights rendered when none are named, in lights.yaml order (those without ``default: false``)."""
+    return [name for name, spec in load_lights(lights_yaml).items() if spec.default]
 
 
 def resolve_light(name_or_path: str | Path, lights_yaml: str | Path = LIGHTS_YAML) -> LightSpec:
@@ -95,7 +116,8 @@ def resolve_light(name_or_path: str | Path, lights_yaml: str | Path = LIGHTS_YAM
 
 
 def prepare_envmap(spec: LightSpec) -> np.ndarray:
-    """Read, rotate (at source resolution), scale by strength and downsample to float32 16 x 32 x 3.
+    """Read, rotate (at source resolution), scale by strength and downsample to float32 height x width x 3
+    (16 x 32 unless the light names its resolution; energy-preserving, see envmap.downsample_envmap).
 
     The result is exactly the radiance the scene is lit by: the pipeline writes it as ``<light>.hdr``
     and renders with that file at world strength 1.
@@ -103,5 +125,6 @@ def prepare_envmap(spec: LightSpec) -> np.ndarray:
     img = read_envmap(spec.source)
     if spec.rotation_deg:
         img = rotate_envmap(img, spec.rotation_deg)
-    small = downsample_envmap(img, ENV_WIDTH, ENV_HEIGHT)
+    width, height = spec.resolution
+    small = downsample_envmap(img, width, height)
     return (small * np.float32(spec.strength)).astype(np.float32)

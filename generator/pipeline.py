@@ -46,7 +46,8 @@ class SceneRun:
 
 
 def default_lights() -> list[str]:
-    return list(lights_mod.load_lights())
+    """The named lights rendered when none are given (configs/lights.yaml, less those with default: false)."""
+    return lights_mod.default_light_names()
 
 
 def resolve_lights(names: list[str] | None) -> list:
@@ -247,7 +248,7 @@ def _write_dataset_json(variant: Path, run: SceneRun, spec_hash: str, complete: 
         "profile": {"name": prof.name, "resolution": prof.resolution, "spp": prof.spp, "gt_spp": settings.gt_spp,
                     "denoised": prof.spp > 8, "frames": len(plan.times), "test_views": len(plan.test_c2w)},
         "lights": [{"name": s.name, "source": str(s.source), "rotation_deg": s.rotation_deg, "strength": s.strength,
-                    "hdr_sha256": h} for s, (_, h) in zip(run.lights, settings.lights)],
+                    "resolution": list(s.resolution), "hdr_sha256": h} for s, (_, h) in zip(run.lights, settings.lights)],
         "frame_seconds": frames,
         "complete": bool(complete),
     }

@@ -121,20 +121,38 @@ def env_file(tmp_path_factory):
     return path
 
 
-def test_world_background_along_directions_is_the_selected_texel(tmp_path, env_file):
+@pytest.fixture(scope="module")
+def fine_env_file(tmp_path_factory):
+    """A 128 x 64 map (a light with its own resolution, e.g. city_sharp), every texel distinct."""
+    path = tmp_path_factory.mktemp("env_fine") / "distinct_fine.hdr"
+    write_hdr(path, _distinct_map(64, 128))
+    return path
+
+
+@pytest.mark.parametrize("size", [(16, 32), (64, 128)])
+def test_world_background_along_directions_is_the_selected_texel(tmp_path, env_file, fine_env_file, size):
+    """The world shows, along each texel's centre direction, that texel: the 'Closest' lookup of
+    direction_to_uv at the default 32 x 16 and at a finer map's own size (128 x 64)."""
+    h, w = size
+    path = env_file if size == (16, 32) else fine_env_file
     scene = _fresh_scene()
     bcyc.configure(scene, resolution=8, spp=2, seed=0, threads=2)
     scene.render.film_transparent = False
     bcyc.set_exr_output(scene)
-    bworld.set_environment(scene, env_file, strength=1.0)
-    env = read_envmap(env_file)
-    centres = texel_directions(16, 32)
-    picks = [(0, 0), (2, 5), (4, 16), (7, 8), (8, 23), (3, 30), (6, 31), (1, 12)]
+    bworld.set_environment(scene, path, strength=1.0)
+    assert bworld.environment_width(scene.world) == w
+    env = read_envmap(path)
+    assert env.shape == (h, w, 3)
+    centres = texel_directions(h, w)
+    k = h // 16  # the same places on the sphere at either size, plus texels only the fine map has
+    picks = [(0, 0), (2 * k, 5 * k), (4 * k, 16 * k), (7 * k, 8 * k), (8 * k, 23 * k), (3 * k, 30 * k),
+             (6 * k, 31 * k), (1 * k, 12 * k), (h - 1, w - 1), (h // 2 - 1, w // 2 + 1)]
     for i, (row, col) in enumerate(picks):
         d = centres[row, col]
-        bcam.set_camera(scene, look_at((0.0, 0.0, 0.0), d), math.radians(1.0))
+        # a view narrow enough to stay inside the texel (at the fine map's pole row a texel is 0.07 deg wide)
+        bcam.set_camera(scene, look_at((0.0, 0.0, 0.0), d), math.radians(1.0 if k == 1 else 0.02))
         img = read_image(bcyc.render_still(scene, tmp_path / f"dir{i}.exr"))[..., :3]
-        r_sel, c_sel = texel_of_direction(d, 16, 32)
+        r_sel, c_sel = texel_of_direction(d, h, w)
         assert (int(r_sel), int(c_sel)) == (row, col)
         np.testing.assert_allclose(img.reshape(-1, 3), np.broadcast_to(env[row, col], (64, 3)), rtol=1e-5,
                                    err_msg=f"direction {d} (u, v = {direction_to_uv(d)})")

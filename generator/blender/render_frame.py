@@ -26,7 +26,9 @@ from . import world as bworld
 from .build import build_scene, reset_blender
 
 # Importance map for the world: the 32 x 16 maps need little resolution. "MANUAL" matters for speed:
-# Cycles' automatic mode rebuilds a large map on every env swap (about 0.7 s each, measured).
+# Cycles' automatic mode rebuilds a large map on every env swap (about 0.7 s each, measured). The map is
+# WORLD_SAMPLE_MAP x WORLD_SAMPLE_MAP / 2, or the env map's own size when that is wider (a light with a
+# finer `resolution` in lights.yaml: one importance texel per env texel; 128 x 64 maps keep 128).
 WORLD_SAMPLE_MAP = 128
 
 
@@ -59,7 +61,7 @@ class FrameRenderer:
             return
         world = bworld.set_environment(self.scene, self.hdr_paths[name], 1.0)
         world.cycles.sampling_method = "MANUAL"
-        world.cycles.sample_map_resolution = WORLD_SAMPLE_MAP
+        world.cycles.sample_map_resolution = max(WORLD_SAMPLE_MAP, bworld.environment_width(world))
         self.current_light = name
 
     def _pose(self, job: FrameJob) -> None:

@@ -21,8 +21,9 @@ def _linear_colorspace(image) -> None:
 def set_environment(bpy_scene, hdr_path, strength: float = 1.0):
     """World = Environment Texture (equirectangular, 'Closest') -> Background(strength) -> World Output.
 
-    'Closest' makes the world exactly the 32 x 16 piecewise-constant map the method can represent; the
-    texture's default vector is the world direction, i.e. the mapping of generator.envmap.direction_to_uv.
+    'Closest' makes the world exactly the piecewise-constant map (32 x 16, or the light's own resolution)
+    that the method looks up texel for texel; the texture's default vector is the world direction, i.e. the
+    mapping of generator.envmap.direction_to_uv. Any map size works the same way.
     """
     path = Path(hdr_path).resolve()
     if not path.is_file():
@@ -55,3 +56,11 @@ def set_environment(bpy_scene, hdr_path, strength: float = 1.0):
     tree.links.new(tex.outputs["Color"], bg.inputs["Color"])
     tree.links.new(bg.outputs["Background"], out.inputs["Surface"])
     return world
+
+
+def environment_width(world) -> int:
+    """Width in texels of the map the world's Environment Texture shows (0 when it has none)."""
+    for node in world.node_tree.nodes:
+        if node.bl_idname == "ShaderNodeTexEnvironment" and node.image is not None:
+            return int(node.image.size[0])
+    return 0

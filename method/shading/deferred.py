@@ -58,9 +58,24 @@ def surface_points(out: RasterOutput, camera: Camera, pix: torch.Tensor) -> tupl
     return pts, view
 
 
-def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor:
+def common_grid(envs: list[torch.Tensor]) -> list[torch.Tensor] | None:
+    """The maps on the finest grid among them, each texel repeated (a 16 x 32 map on a 64 x 128 grid is the
+    same function under the nearest-texel lookup), when every size divides that grid; else None."""
+    h = max(e.shape[0] for e in envs)
+    w = max(e.shape[1] for e in envs)
+    if any(h % e.shape[0] or w % e.shape[1] for e in envs):
+        return None
+    return [e.repeat_interleave(h // e.shape[0], 0).repeat_interleave(w // e.shape[1], 1) for e in envs]
+
+
+def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor | None:
     """One proposal for several maps: each map scaled to unit total power, then averaged, so every map's
-    bright texels (a small sun) keep their share of the samples."""
+    bright texels (a small sun) keep their share of the samples. Maps of different sizes are mixed on the
+    finest grid (:func:`common_grid`); None when their sizes do not divide it (each map samples itself)."""
+    if len({tuple(e.shape) for e in envs}) > 1:
+        envs = common_grid(envs)
+        if envs is None:
+            return None
     out = None
     for e in envs:
         h, w = e.shape[:2]
@@ -126,8 +141,8 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
         tracer = tracer_for(d, acc, s2["trace_offset"] * scene.extent, indirect, extent=scene.extent,
                             replay=len(envs) > 1 or albedo_scale is not None)
         start = generator.get_state()
-        same_size = len({tuple(e.shape) for e in envs.values()}) == 1
-        mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 and same_size else None
+        # maps of different sizes (a 128 x 64 light beside 32 x 16 ones) share one proposal on the finest grid
+        mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 else None
         passes = [("relit", None)] + ([("relit_scaled", albedo_scale)] if albedo_scale is not None else [])
         for tag, scale in passes:
             for name, env in envs.items():

@@ -33,6 +33,14 @@ from .sampling import pdf_ggx, pdf_hemisphere, random_offsets, sample_env, sampl
 
 DEFAULT_MIX = (0.5, 0.25, 0.25)  # share of the directions per strategy: cosine, ggx, env
 MAX_SAMPLES_PER_CHUNK = 1 << 20  # pixels x directions evaluated at once (bounds peak memory)
+QUADRATURE_ROWS = 64  # env_quadrature cuts texels into cells until the map has this many rows of cells
+MAX_QUADRATURE_TERMS = 1 << 26  # pixels x cells in one cosine-weight tensor (256 MiB in float32)
+
+
+def quadrature_sub(height: int) -> int:
+    """Cells per texel side for ``env_quadrature``: 4 for the 16-row maps (as always), 1 from 64 rows up, so a
+    finer map (a 128 x 64 light) costs what a 32 x 16 one does and its cells are no coarser."""
+    return max(1, -(-QUADRATURE_ROWS // max(int(height), 1)))
 
 Visibility = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Indirect = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -88,7 +96,8 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
         if diffuse_weighting == "fresnel":
             raise ValueError("env_quadrature needs a diffuse weight that does not depend on the direction "
                              "(diffuse_weighting 'albedo' or 'none')")
-        moments = texel_moments(envmap.shape[0], envmap.shape[1], device=normals.device, dtype=normals.dtype)
+        moments = texel_moments(envmap.shape[0], envmap.shape[1], quadrature_sub(envmap.shape[0]),
+                                device=normals.device, dtype=normals.dtype)
     rough = B.clamp_roughness(roughness.reshape(P))
     # the env strategy's proposal: this map, or another one (relighting one view under several maps with one
     # shared direction set samples from their mixture, which stays unbiased for each map)
@@ -137,8 +146,9 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, cou
         h_env, w_env = envmap.shape[0], envmap.shape[1]
         row, col = texel_index(dirs, h_env, w_env)
         texel = row * w_env + col  # one texel lookup serves the radiance and the env pdf
-        if n_env:
-            denom = denom + n_env * sampler.pdf_of_texel(texel)
+        if n_env:  # a proposal on another grid (several maps' mixture) looks its own texels up
+            same_grid = (sampler.height, sampler.width) == (h_env, w_env)
+            denom = denom + n_env * (sampler.pdf_of_texel(texel) if same_grid else sampler.pdf(dirs))
         live = (nl0 > 0) & (nv.detach() > 0) & (denom > 0)
         inv = torch.where(live, 1.0 / denom.clamp_min(1e-30), torch.zeros_like(denom))
     spec = B.specular(nl, nv.expand_as(nl), nh, vh, r)  # (P, S)
@@ -150,11 +160,21 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, cou
     if moments is None:
         diffuse = albedo / torch.pi * (dw[..., None] * radiance).sum(1)
     else:  # exact unshadowed irradiance + the sampled change that shadowing makes (zero where V = 1)
-        irradiance = cosine_weights(normals, moments) @ envmap.reshape(h_env * w_env, -1)  # (P, 3)
+        irradiance = _irradiance(normals, moments, envmap.reshape(h_env * w_env, -1))  # (P, 3)
         irradiance = irradiance * (wd if torch.is_tensor(wd) else float(wd)) * (nv > 0).to(irradiance)
         diffuse = albedo / torch.pi * (irradiance + (dw[..., None] * (radiance - env_l)).sum(1))
     specular = ((spec * cos_w)[..., None] * radiance).sum(1)
     return diffuse + specular, diffuse, specular
+
+
+def _irradiance(normals: torch.Tensor, moments: torch.Tensor, env_flat: torch.Tensor) -> torch.Tensor:
+    """Unshadowed irradiance (P, 3) from the texel cosine weights, in groups of pixels small enough that one
+    group's (pixels, texels, cells) weights stay under MAX_QUADRATURE_TERMS (a map of any size fits)."""
+    step = max(1, MAX_QUADRATURE_TERMS // max(moments.shape[0] * moments.shape[1], 1))
+    if normals.shape[0] <= step:
+        return cosine_weights(normals, moments) @ env_flat
+    return torch.cat([cosine_weights(normals[s:s + step], moments) @ env_flat
+                      for s in range(0, normals.shape[0], step)])
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
