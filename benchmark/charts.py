@@ -2,14 +2,19 @@
 where the relight error comes from (the relight diagnostic, when some result carries one).
 
 Failed runs are drawn (a red cross in a row kept free under the data, counted in the legend), never
-dropped silently. An external method that has not been run is no failure: it draws nothing and is named
-under the chart as "not run". Log axes carry plain numbers (0.1, 1, 10, 1k; 5k, 10k, 20k) on 1-2-5 or
+dropped silently; a run that diverged (training stopped on a non-finite value, method/train.py) is drawn
+as such (a dark-red filled cross, "diverged" in the legend). Each cross sits at its run's x: its
+(scene, configuration) column in the stability chart, its method's mean elsewhere; with few of them each
+is labelled with its configuration and seed (:func:`failure_marks`, :func:`stability_data`). An external
+method that has not been run is no failure: it draws nothing and is named under the chart as "not run".
+The quality charts join the seeds of one (method, scene, configuration) with a thin line (their spread). Log axes carry plain numbers (0.1, 1, 10, 1k; 5k, 10k, 20k) on 1-2-5 or
 decade positions and no minor labels; the legend sits outside the axes, shared by both panels. Each chart
 works from result dictionaries only, so `make eval` rebuilds them from stored results. They are drawn from
 the results of one protocol (the grid's primary one, see benchmark.outputs), named in each title.
 """
 from __future__ import annotations
 
+import re
 import textwrap
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -21,6 +26,10 @@ from lumibench.io import atomic_path
 from .aggregate import gaussian_count, is_not_run, metric_value, training_seconds
 
 QUALITY = (("relight.psnr", "relight PSNR (dB) ↑", True), ("albedo.lpips", "albedo LPIPS ↓", False))
+# the cause method/train.py's TrainingDiverged gives ("stage 1 stopped: non-finite loss at iteration 37; ...")
+DIVERGED = re.compile(r"stopped: non-finite|\bdiverged\b", re.IGNORECASE)
+FAILURE_STYLE = {"failed": {"marker": "x", "color": "red"}, "diverged": {"marker": "X", "color": "darkred"}}
+MAX_FAILURE_LABELS = 12  # with more failed runs than this, the legend counts them and no cross is labelled
 
 
 def _plt():
@@ -198,6 +207,8 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
             if pts:
                 xs, ys = np.array(pts).T
                 ax.scatter(xs, ys, s=14, alpha=0.35, color=colours[m])
+                for sx, (lo, hi) in seed_spreads(results, m, xfun, key):  # the seeds of one point: their spread
+                    ax.plot([sx, sx], [lo, hi], color=colours[m], alpha=0.5, lw=1, zorder=1)
                 mx, my = float(np.mean(xs)), float(np.mean(ys))
                 ax.scatter([mx], [my], s=70, color=colours[m], edgecolor="k", zorder=3, label=m)
                 means.append((mx, my))
@@ -205,7 +216,10 @@ def _quality_vs(results: Sequence[dict], xfun: Callable[[dict], float | None], x
         if front and len(means) > 1:
             fx, fy = np.array(pareto_front(means, higher)).T
             ax.step(fx, fy, where="post", color="0.3", lw=1, ls="--", label="Pareto front", zorder=2)
-        _draw_failures(ax, results, methods, colours, xpos)
+        marks = failure_marks(results, methods)
+        for mk in marks:
+            mk["x"] = xpos.get(mk["method"])
+        _draw_failures(ax, marks, methods)
         _reserve_failure_row(ax, _max_failures(results))
         if means and min(x for x, _ in means) > 0:
             ax.set_xscale("log")
@@ -227,6 +241,26 @@ def _failed(results: Sequence[dict]) -> list[dict]:
     return [r for r in results if r["status"] != "ok" and not is_not_run(r)]
 
 
+def failure_kind(result: dict) -> str:
+    """"diverged" when the run stopped on a non-finite value (its cause says so), else "failed"."""
+    return "diverged" if DIVERGED.search(str(result.get("error") or "")) else "failed"
+
+
+def failure_marks(results: Sequence[dict], methods: Sequence[str] | None = None) -> list[dict]:
+    """One mark per failed run of ``methods`` (all when None; a job of a method not run is no failure):
+    method, scene, configuration, seed, kind ("failed" or "diverged"), cause, and a short ``label``
+    (configuration and seed) drawn beside its cross; the charts add its ``x``."""
+    out = []
+    for r in _failed(results):
+        if methods is not None and r["method"] not in methods:
+            continue
+        out.append({"method": r["method"], "scene": r.get("scene"), "train_light": r.get("train_light"),
+                    "test_light": r.get("test_light"), "seed": r.get("seed"), "kind": failure_kind(r),
+                    "cause": str(r.get("error") or ""),
+                    "label": f"{r.get('train_light')}→{r.get('test_light')} s{r.get('seed')}"})
+    return out
+
+
 def _max_failures(results: Sequence[dict]) -> int:
     counts: dict[str, int] = {}
     for r in _failed(results):
@@ -234,24 +268,55 @@ def _max_failures(results: Sequence[dict]) -> int:
     return max(counts.values(), default=0)
 
 
-def _draw_failures(ax, results: Sequence[dict], methods: Sequence[str], colours: dict,
-                   xpos: dict[str, float] | None = None) -> None:
-    """A red cross per failed run along the lower edge, so failures stay visible.
-
-    ``xpos`` gives a method's x in data coordinates (its mean); methods without one go on the left.
-    An external method that has not been run is not a failure (the tables list it as "not run").
-    """
-    failed = _failed(results)
-    for i, m in enumerate(methods):
-        n = sum(1 for r in failed if r["method"] == m)
-        if not n:
+def seed_spreads(results: Sequence[dict], method: str, xfun: Callable[[dict], float | None],
+                 key: str) -> list[tuple[float, tuple[float, float]]]:
+    """Per (scene, configuration) of ``method`` with two or more seeds that report x and ``key``: (mean x,
+    (min, max) of the metric over the seeds), the spread the quality charts draw as a line."""
+    cells: dict[tuple, list[tuple[float, float]]] = {}
+    for r in results:
+        if r["method"] != method or r["status"] != "ok":
             continue
-        if xpos and m in xpos:
-            ax.scatter([xpos[m]] * n, _failure_heights(n), transform=ax.get_xaxis_transform(),
-                       marker="x", color="red", s=40, clip_on=False, label=f"{m}: {n} failed", zorder=4)
-        else:
-            ax.scatter([0.04 + 0.05 * i] * n, _failure_heights(n), transform=ax.transAxes,
-                       marker="x", color="red", s=40, clip_on=False, label=f"{m}: {n} failed (no value)", zorder=4)
+        x, y = xfun(r), metric_value(r, key)
+        if x is not None and y is not None:
+            cells.setdefault((r["scene"], r["train_light"], r["test_light"]), []).append((x, y))
+    return [(float(np.mean([x for x, _ in v])), (min(y for _, y in v), max(y for _, y in v)))
+            for v in cells.values() if len(v) > 1]
+
+
+def _draw_failures(ax, marks: Sequence[dict], methods: Sequence[str]) -> None:
+    """A cross per failed run along the lower edge, so failures stay visible: red x when it failed, a
+    dark-red filled X when it diverged, at its mark's ``x`` (data coordinates; marks without one go on
+    the left, one slot per method), stacked where several share an x, and labelled with its configuration
+    and seed when there are few. An external method that has not been run is not a failure (the tables
+    list it as "not run")."""
+    per_method: dict[str, int] = {}
+    for mk in marks:
+        per_method[mk["method"]] = per_method.get(mk["method"], 0) + 1
+    heights = _failure_heights(max(per_method.values(), default=0))
+    label_each = len(marks) <= MAX_FAILURE_LABELS
+    stack: dict[Any, int] = {}
+    for i, m in enumerate(methods):
+        for kind, style in FAILURE_STYLE.items():
+            mine = [mk for mk in marks if mk["method"] == m and mk["kind"] == kind]
+            for placed in (True, False):
+                group = [mk for mk in mine if (mk.get("x") is not None) == placed]
+                if not group:
+                    continue
+                transform = ax.get_xaxis_transform() if placed else ax.transAxes
+                xs, ys = [], []
+                for mk in group:
+                    slot = ("x", mk["x"]) if placed else ("method", i)
+                    k = stack.get(slot, 0)
+                    stack[slot] = k + 1
+                    xs.append(mk["x"] if placed else 0.04 + 0.05 * i)
+                    ys.append(heights[min(k, len(heights) - 1)])
+                ax.scatter(xs, ys, transform=transform, s=40, clip_on=False, zorder=4,
+                           label=f"{m}: {len(group)} {kind}" + ("" if placed else " (no value)"), **style)
+                if label_each:
+                    for x, y, mk in zip(xs, ys, group):
+                        ax.annotate(mk["label"], (x, y), xycoords=transform, xytext=(4, 0),
+                                    textcoords="offset points", fontsize=6, color=style["color"],
+                                    va="center", ha="left", annotation_clip=False)
 
 
 def pareto_chart(results: Sequence[dict], path: Path) -> Path:
@@ -264,13 +329,37 @@ def gaussians_chart(results: Sequence[dict], path: Path) -> Path:
                        "Quality vs model size", path, front=True)
 
 
+def stability_data(results: Sequence[dict], key: str) -> dict[str, Any]:
+    """What the stability chart draws for ``key``: the methods (one column each), and per (method, scene,
+    configuration) cell its x (spread inside the method's column) and the (seed, value) of each successful
+    run; ``marks``: :func:`failure_marks` with each failed or diverged run at its own cell's x."""
+    methods = _methods(results)
+    cells, xs = [], {}
+    for i, m in enumerate(methods):
+        runs = [r for r in results if r["method"] == m and not is_not_run(r)]
+        keys = sorted({(r["scene"], r["train_light"], r["test_light"]) for r in runs})
+        for j, cell in enumerate(keys):
+            x = i + (j - (len(keys) - 1) / 2) * (0.6 / max(len(keys), 1))
+            xs[(m, *cell)] = x
+            vals = [(r["seed"], metric_value(r, key)) for r in runs
+                    if (r["scene"], r["train_light"], r["test_light"]) == cell and r["status"] == "ok"]
+            cells.append({"method": m, "scene": cell[0], "train_light": cell[1], "test_light": cell[2], "x": x,
+                          "values": [(s, v) for s, v in vals if v is not None]})
+    marks = failure_marks(results, methods)
+    for mk in marks:
+        mk["x"] = xs.get((mk["method"], mk["scene"], mk["train_light"], mk["test_light"]))
+    return {"methods": methods, "cells": cells, "marks": marks,
+            "seeds": sorted({r["seed"] for r in results if r["status"] == "ok"})}
+
+
 def stability_chart(results: Sequence[dict], path: Path) -> Path:
-    """Per method and (scene, configuration): the value of every seed, so spread across seeds shows."""
+    """Per method and (scene, configuration): the value of every seed, so spread across seeds shows; a
+    failed or diverged run is a cross at its own (scene, configuration) column (:func:`stability_data`)."""
     plt = _plt()
     methods = _methods(results)
     fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.2 * len(QUALITY) + 1.2, 4.4), layout="constrained")
     fig.suptitle(_titled("Stability across seeds", results)
-                 + "\none column per method; dots: seeds, bar: min-max per scene/config")
+                 + "\none column per method; dots: seeds, bar: min-max per scene/config; x: failed or diverged")
     seeds = sorted({r["seed"] for r in results if r["status"] == "ok"})
     viridis = plt.get_cmap("viridis")
 
@@ -278,22 +367,16 @@ def stability_chart(results: Sequence[dict], path: Path) -> Path:
         return viridis(0.85 * t)
 
     for ax, (key, label, _) in zip(np.atleast_1d(axes), QUALITY):
-        for i, m in enumerate(methods):
-            runs = [r for r in results if r["method"] == m and not is_not_run(r)]
-            cells = sorted({(r["scene"], r["train_light"], r["test_light"]) for r in runs})
-            for j, cell in enumerate(cells):
-                x = i + (j - (len(cells) - 1) / 2) * (0.6 / max(len(cells), 1))
-                vals = [(r["seed"], metric_value(r, key)) for r in runs
-                        if (r["scene"], r["train_light"], r["test_light"]) == cell and r["status"] == "ok"]
-                vals = [(s, v) for s, v in vals if v is not None]
-                if vals:
-                    vs = [v for _, v in vals]
-                    ax.plot([x, x], [min(vs), max(vs)], color="0.6", lw=1)
-                    ax.scatter([x] * len(vs), vs, s=16, zorder=3,
-                               color=[cmap(seeds.index(s) / max(len(seeds) - 1, 1)) for s, _ in vals])
+        data = stability_data(results, key)
+        for cell in data["cells"]:
+            if cell["values"]:
+                x, vs = cell["x"], [v for _, v in cell["values"]]
+                ax.plot([x, x], [min(vs), max(vs)], color="0.6", lw=1)
+                ax.scatter([x] * len(vs), vs, s=16, zorder=3,
+                           color=[cmap(seeds.index(s) / max(len(seeds) - 1, 1)) for s, _ in cell["values"]])
         for k, s in enumerate(seeds):  # legend entries only (the figure legend collects them)
             ax.plot([], [], ls="", marker="o", color=cmap(k / max(len(seeds) - 1, 1)), label=f"seed {s}")
-        _draw_failures(ax, results, methods, _colours(methods), {m: float(i) for i, m in enumerate(methods)})
+        _draw_failures(ax, data["marks"], methods)
         _reserve_failure_row(ax, _max_failures(results))
         ax.set_xticks(range(len(methods)), methods, rotation=30, ha="right", rotation_mode="anchor", fontsize=8)
         ax.set_xlim(-0.6, len(methods) - 0.4)

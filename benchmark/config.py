@@ -7,6 +7,11 @@ and the key, before any job starts.
 result file per protocol, one table per protocol); the first is the grid's primary protocol (its charts
 and image grids). ``protocol: <name>`` (older grids) means ``protocols: [<name>]``; without either key a
 grid scores ``lumimotion`` only.
+
+A configuration may name the methods that run under it (``{train: city_sharp, test: sunrise, methods:
+[lumimotion, static]}``; each one of the grid's ``methods``); without ``methods`` every method of the grid
+does. A stress sweep so runs each stress once instead of the whole cross product (configs/benchmark/
+small_stress.yaml).
 """
 from __future__ import annotations
 
@@ -28,6 +33,10 @@ LPIPS_NETS = ("vgg", "alex")
 class Configuration:
     train: str
     test: str
+    methods: tuple[str, ...] = ()  # the methods that run under it; () = every method of the grid
+
+    def runs(self, method: str) -> bool:
+        return not self.methods or method in self.methods
 
     @property
     def label(self) -> str:
@@ -67,6 +76,10 @@ class BenchmarkConfig:
         _check_methods(methods, "--methods")
         return replace(self, methods=tuple(methods))
 
+    def lights(self) -> list[str]:
+        """Every light the configurations name (train and test), in order of appearance."""
+        return list(dict.fromkeys(name for c in self.configurations for name in (c.train, c.test)))
+
 
 def config_path(profile: str) -> Path:
     return CONFIG_DIR / "benchmark" / f"{profile}.yaml"
@@ -90,8 +103,10 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
     # scene names are checked by the job grid: a rendered scene needs no spec in configs/scenes/
     known_lights = _known_lights()
     configurations, light_files = [], {}
+    methods = _strings(root, "methods")
+    _check_methods(methods, f"{path}: key 'methods'")
     for node in root.children("configurations"):
-        node.reject_unknown(["train", "test"])
+        node.reject_unknown(["train", "test", "methods"])
         names = []
         for key in ("train", "test"):
             light = node.get(key, str)
@@ -109,11 +124,23 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
         train, test = names
         if train == test:
             raise node.error("test", f"must differ from the train light ('{train}')")
-        configurations.append(Configuration(train, test))
+        only: tuple[str, ...] = ()
+        if node.data.get("methods") is not None:
+            only = tuple(_strings(node, "methods"))
+            stray = [m for m in only if m not in methods]
+            if stray:
+                raise node.error("methods", f"names '{stray[0]}', which is not one of the grid's methods "
+                                            f"({', '.join(methods)})")
+        conf = Configuration(train, test, only)
+        if any((c.train, c.test) == (train, test) for c in configurations):
+            raise node.error("test", f"repeats the configuration {conf.label}")
+        configurations.append(conf)
     if not configurations:
         raise root.error("configurations", "must list at least one {train, test} pair")
-    methods = _strings(root, "methods")
-    _check_methods(methods, f"{path}: key 'methods'")
+    idle = [m for m in methods if not any(c.runs(m) for c in configurations)]
+    if idle:
+        raise root.error("methods", f"lists '{idle[0]}', which no configuration runs (each configuration with "
+                                    f"'methods' names the ones it runs)")
     seeds = root.get("seeds", list, [0])
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
         raise root.error("seeds", f"must be a non-empty list of non-negative integers, got {seeds!r}")

@@ -57,12 +57,42 @@ def pred_dir(paths: Paths, method: str, scene: str, train_light: str, seed: int)
     return paths.runs / paths.profile / method / scene / train_light / f"seed{seed}" / "predictions"
 
 
+def extra_lights(config: BenchmarkConfig) -> list[str]:
+    """The named lights of the grid's configurations that are not rendered by default (``default: false`` in
+    configs/lights.yaml, e.g. city_sharp): a missing scene is rendered with them besides the default ones."""
+    from generator.lights import load_lights
+
+    named = load_lights()
+    return [x for x in config.lights() if x in named and not named[x].default]
+
+
 def render_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
     """One job per scene whose dataset is missing or unfinished (lumibench.layout.is_complete); the grid's
-    light files are rendered besides the named lights."""
-    extra = {"light_files": list(config.light_files)} if config.light_files else {}
+    light files and its named lights that are not rendered by default are rendered besides the default ones."""
+    extra: dict[str, Any] = {"light_files": list(config.light_files)} if config.light_files else {}
+    if extra_lights(config):
+        extra["light_names"] = extra_lights(config)
     return [{"kind": "render", "scene": s, "profile": paths.profile, "data": str(paths.data), **extra}
             for s in config.scenes if not layout.is_complete(layout.scene_dir(paths.data, paths.profile, s))]
+
+
+def check_scene_lights(config: BenchmarkConfig, paths: Paths) -> None:
+    """A rendered scene that lacks a light the grid names (rendered before the grid named it): one line
+    saying how to get it, before any job runs (adding a light to a scene renders every frame again, so the
+    grid does not do it to a finished dataset that other grids may be reading)."""
+    for s in config.scenes:
+        scene = layout.scene_dir(paths.data, paths.profile, s)
+        if not layout.is_complete(scene):
+            continue
+        have = sorted(p.name for p in scene.iterdir() if (p / "train").is_dir() and p.name not in layout.GT_KINDS
+                      and not p.name.startswith("."))  # as method.data.available_lights, without torch
+        missing = [x for x in config.lights() if x not in have]
+        if missing:
+            raise UserError(f"{scene} was rendered without the light(s) {', '.join(missing)} that {config.source} "
+                            f"names (it has {', '.join(have) or 'none'}): give the grid another --data root (a "
+                            f"missing scene is rendered with every light it needs), or render this one again with "
+                            f"them: make dataset PROFILE={paths.profile} SCENES={s} DATA={paths.data} "
+                            f"LIGHTS=\"{' '.join(list(dict.fromkeys(have + missing)))}\" (every frame again)")
 
 
 def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
@@ -80,7 +110,9 @@ def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
         seeds = config.seeds if get_adapter(method).seed_dependent else config.seeds[:1]
         for scene in config.scenes:
             for train in trains:
-                confs = [c for c in config.configurations if c.train == train]
+                confs = [c for c in config.configurations if c.train == train and c.runs(method)]
+                if not confs:  # every configuration with this train light names its methods, not this one
+                    continue
                 for seed in seeds:
                     jobs.append({
                         "kind": "method", "method": method, "scene": scene, "train": train,
@@ -179,10 +211,11 @@ def _execute_render(job: dict[str, Any]) -> dict[str, Any]:
         from generator.pipeline import render_scene
 
         lights = {}
-        if job.get("light_files"):  # every named light, as `make dataset` renders, and the grid's files
+        if job.get("light_files") or job.get("light_names"):
+            # the default lights, as `make dataset` renders, the grid's other named lights and its files
             from generator.pipeline import default_lights
 
-            lights = {"lights": default_lights() + job["light_files"]}
+            lights = {"lights": default_lights() + job.get("light_names", []) + job.get("light_files", [])}
         render_scene(job["scene"], job["profile"], job["data"], job.get("jobs", 1), **lights)
         scene = layout.scene_dir(job["data"], job["profile"], job["scene"])
         if not layout.is_complete(scene):
@@ -443,6 +476,7 @@ def run_grid(config: BenchmarkConfig, paths: Paths, executor: str = "local", wor
         rjobs, workers_r = [dict(rjobs[0], jobs=workers)], 1
     else:
         workers_r = workers
+    check_scene_lights(config, paths)
     rendered = run_jobs(rjobs, executor, workers_r, "rendering scenes", quiet)
     for job, outcome in rendered:
         if outcome["status"] != "ok":

@@ -120,10 +120,14 @@ def test_chart_failure_marks_skip_methods_not_run():
         def get_xaxis_transform(self):
             return None
 
+        def annotate(self, *args, **kwargs):
+            pass
+
     res = [{"method": "irgs", "status": "failed", "error": "not run: export the scene first"},
            {"method": "r3dgs", "status": "not_run"},
            {"method": "ours", "status": "failed", "error": "NaN at iteration 3"}]
-    charts._draw_failures(Ax(), res, ["irgs", "r3dgs", "ours"], {})
+    methods = ["irgs", "r3dgs", "ours"]
+    charts._draw_failures(Ax(), charts.failure_marks(res, methods), methods)
     assert labels == ["ours: 1 failed (no value)"]
 
 
