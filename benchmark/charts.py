@@ -249,15 +249,18 @@ def failure_kind(result: dict) -> str:
 def failure_marks(results: Sequence[dict], methods: Sequence[str] | None = None) -> list[dict]:
     """One mark per failed run of ``methods`` (all when None; a job of a method not run is no failure):
     method, scene, configuration, seed, kind ("failed" or "diverged"), cause, and a short ``label``
-    (configuration and seed) drawn beside its cross; the charts add its ``x``."""
+    (configuration and seed, the scene first when the results hold several) drawn beside its cross; the
+    charts add its ``x``."""
     out = []
+    several = len({r.get("scene") for r in results if not is_not_run(r)}) > 1  # then the label names the scene
     for r in _failed(results):
         if methods is not None and r["method"] not in methods:
             continue
         out.append({"method": r["method"], "scene": r.get("scene"), "train_light": r.get("train_light"),
                     "test_light": r.get("test_light"), "seed": r.get("seed"), "kind": failure_kind(r),
                     "cause": str(r.get("error") or ""),
-                    "label": f"{r.get('train_light')}→{r.get('test_light')} s{r.get('seed')}"})
+                    "label": (f"{r.get('scene')} " if several else "")
+                    + f"{r.get('train_light')}→{r.get('test_light')} s{r.get('seed')}"})
     return out
 
 

@@ -380,6 +380,9 @@ def test_failure_marks_say_failed_or_diverged():
     assert [(m["method"], m["kind"], m["train_light"], m["seed"]) for m in marks] == [
         ("lumimotion", "diverged", "sunrise", 2), ("static", "failed", "city_sharp", 0)]
     assert marks[0]["label"] == "sunrise→city s2" and "non-finite" in marks[0]["cause"]
+    two = _stress_results() + [fake_result("static", "mouse", "city", "sunrise", 0, status="failed")]
+    assert [m["label"] for m in charts.failure_marks(two)] == ["spheres sunrise→city s2",
+                                                               "spheres city_sharp→sunrise s0", "mouse city→sunrise s0"]
 
 
 def test_stability_draws_each_failure_at_its_own_configuration():
