@@ -9,7 +9,7 @@
       roughness/<split>/r_NNNN.png    linear 8-bit                      (+ .npz: float32 H x W x 1)
       normal/<split>/r_NNNN.png       world-space, (n + 1) / 2          (+ .npz: float32 H x W x 3, unit)
       dynamic_mask/<split>/r_NNNN.png coverage of moving objects        (+ .npz: float32 H x W x 1)
-      <light>.hdr, <light>.png        the 32 x 16 env map exactly as rendered, and a preview
+      <light>.hdr, <light>.png        the env map exactly as rendered (32 x 16, or the light's resolution), and a preview
       dataset.json                    spec hash, Blender version, seed, profile, timings; "complete": true
                                       is written last, so a scene without it is unfinished
     DATA/PROFILE/<scene>_statictimestepNNNN/    static variant: same layout, all cameras at timestep NNNN

@@ -18,7 +18,7 @@ fact below was read from those loaders (each method module names the file and co
       roughness/r_NNNN.png, roughness/r_NNNN0001.png   FLAT GT roughness (linear, as RGB): LumiMotion reads
                                               r_<4 digits>.png, IRGS the albedo file's name
       normal/r_NNNN.png                       world normals (n + 1) / 2 (no loader needs them; for viewing)
-      <light>.hdr                             the 32 x 16 env maps, named like the light folders
+      <light>.hdr                             the env maps as rendered (32 x 16 unless a light names its size), named like the light folders
       lumibench_export.json                   our manifest: where each exported name comes from
     OUT/<scene>_statictimestepNNNN/           static variant (the baselines train on it); same layout.
                                               LumiMotion's *_static evaluation scripts find it with
