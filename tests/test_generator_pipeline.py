@@ -24,7 +24,7 @@ from lumibench.io import read_image
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED_ENVMAPS = REPO.parent / "shared" / "data" / "envmaps"
-LIGHTS = list(lights.load_lights())  # the default light set, in lights.yaml order
+LIGHTS = lights.default_light_names()  # the default light set, in lights.yaml order (not city_sharp)
 
 
 def _files(root: Path, scene: str) -> dict[Path, Path]:

@@ -14,7 +14,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=1, help="worker processes, each building the scene once (default 1)")
     p.add_argument("--scenes", nargs="+", default=None, help="scene names or scene YAML paths (default: every configs/scenes/*.yaml)")
     p.add_argument("--lights", nargs="+", default=None,
-                   help="light names from configs/lights.yaml or .hdr/.exr paths (default: all four named lights)")
+                   help="light names from configs/lights.yaml or .hdr/.exr paths (default: the four default lights; "
+                        "a light with default: false, e.g. city_sharp, only when named)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
