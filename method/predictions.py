@@ -86,7 +86,9 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
     if tpath.is_file():
         t = json.loads(tpath.read_text())
         timings = {k: t[k]["seconds"] for k in ("stage1", "stage2") if isinstance(t.get(k), dict)}
-    if not scene.static and not (pred / "p_map" / "train").is_dir():
+    if not scene.static and not _has_every_p_map(pred, train_scene_dir):
+        # every training view's P (the benchmark's separation score), also the frames a run that keeps a
+        # share of them (data.train_frames) did not train on: stage 1 wrote only those it trained on
         write_p_maps(scene, load_scene(train_scene_dir, light, cfg["data"]["background"], dev), pred)
     n_params = scene.num_parameters() + (0 if albedo_from_colour else mats.num_parameters())
     write_meta(pred, {"method": method, "version": VERSION, "seed": int(seed), "device": device_name(dev),
@@ -94,6 +96,17 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
                       "model_size": {"gaussians": len(scene.g), "parameters": int(n_params)},
                       **({"relight_albedo_scale": [float(c) for c in scale]} if scale is not None else {})})
     return pred
+
+
+def _has_every_p_map(pred: Path, train_scene_dir: Path) -> bool:
+    """True when ``PRED/p_map/train`` holds a map for every training frame of the scene."""
+    from lumibench import layout
+
+    folder = pred / "p_map" / "train"
+    if not folder.is_dir():
+        return False
+    have = {p.stem for p in folder.iterdir()}
+    return all(f.stem in have for f in layout.read_transforms(train_scene_dir, "train").frames)
 
 
 def relight_albedo_scale(pred: Path, scene_dir: Path, light: str, views) -> list[float] | None:

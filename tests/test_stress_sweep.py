@@ -117,7 +117,7 @@ def test_ci_run_records_the_share_and_trains_on_the_kept_frames(ci_dataset, tmp_
     torch.set_num_threads(1)
     cfg = load_method_config("ci", TINY + get_adapter("lumimotion@frames0.25").overrides("ci"))
     run = tmp_path / "run"
-    train_stage1(ci_dataset, "city", run, cfg, seed=0, progress=False, write_outputs=False)
+    train_stage1(ci_dataset, "city", run, cfg, seed=0, progress=False)
     rec = yaml.safe_load((run / "config.yaml").read_text())
     assert rec["data"]["train_frames"] == 0.25
     frames = json.loads((ci_dataset / "transforms_train.json").read_text())["frames"]
@@ -126,6 +126,13 @@ def test_ci_run_records_the_share_and_trains_on_the_kept_frames(ci_dataset, tmp_
     (expected,) = _max_min_gap_subsets([times[s] for s in stems], 4)
     assert rec["run"]["train_views"] == [stems[i] for i in expected] == ["r_0000", "r_0005", "r_0010", "r_0015"]
     assert [v.stem for v in load_training_scene(ci_dataset, "city", cfg, "cpu").train] == rec["run"]["train_views"]
+    # stage 1 drew P for the frames it trained on; the predictions hold every training view's (the benchmark
+    # scores the separation on all of them)
+    from method.predictions import write_predictions
+
+    assert len(list((run / "predictions" / "p_map" / "train").glob("*.png"))) == 4
+    pred = write_predictions(run, ci_dataset, "city", cfg, seed=0, test_lights=[], albedo_from_colour=True)
+    assert sorted(p.stem for p in (pred / "p_map" / "train").glob("*.png")) == stems
     other = load_method_config("ci", TINY + ["data.train_frames=0.5"])
     with pytest.raises(UserError, match=r"data\.train_frames=0\.25"):
         train_stage2(ci_dataset, "city", run, other, seed=0, progress=False)
