@@ -11,7 +11,10 @@ grid scores ``lumimotion`` only.
 A configuration may name the methods that run under it (``{train: city_sharp, test: sunrise, methods:
 [lumimotion, static]}``; each one of the grid's ``methods``); without ``methods`` every method of the grid
 does. A stress sweep so runs each stress once instead of the whole cross product (configs/benchmark/
-small_stress.yaml).
+small_stress.yaml). A configuration may also name its seeds (a subset of the grid's ``seeds``), and the same
+train -> test pair may appear twice when each names its methods and no method is in both: the published
+grid runs its main methods with three seeds and the ablations with one under the same pair
+(configs/benchmark/small.yaml).
 """
 from __future__ import annotations
 
@@ -34,9 +37,13 @@ class Configuration:
     train: str
     test: str
     methods: tuple[str, ...] = ()  # the methods that run under it; () = every method of the grid
+    seeds: tuple[int, ...] = ()    # the seeds it runs; () = every seed of the grid
 
     def runs(self, method: str) -> bool:
         return not self.methods or method in self.methods
+
+    def runs_seed(self, seed: int) -> bool:
+        return not self.seeds or seed in self.seeds
 
     @property
     def label(self) -> str:
@@ -102,11 +109,11 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
     scenes = _strings(root, "scenes")
     # scene names are checked by the job grid: a rendered scene needs no spec in configs/scenes/
     known_lights = _known_lights()
-    configurations, light_files = [], {}
+    configurations, light_files, conf_seeds_nodes = [], {}, []
     methods = _strings(root, "methods")
     _check_methods(methods, f"{path}: key 'methods'")
     for node in root.children("configurations"):
-        node.reject_unknown(["train", "test", "methods"])
+        node.reject_unknown(["train", "test", "methods", "seeds"])
         names = []
         for key in ("train", "test"):
             light = node.get(key, str)
@@ -131,9 +138,17 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
             if stray:
                 raise node.error("methods", f"names '{stray[0]}', which is not one of the grid's methods "
                                             f"({', '.join(methods)})")
-        conf = Configuration(train, test, only)
-        if any((c.train, c.test) == (train, test) for c in configurations):
-            raise node.error("test", f"repeats the configuration {conf.label}")
+        conf_seeds: tuple[int, ...] = ()
+        if node.data.get("seeds") is not None:
+            conf_seeds = tuple(node.get("seeds", list))
+            if not conf_seeds or not all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in conf_seeds):
+                raise node.error("seeds", f"must be a non-empty list of non-negative integers, got {list(conf_seeds)!r}")
+            conf_seeds_nodes.append((node, conf_seeds))
+        conf = Configuration(train, test, only, conf_seeds)
+        for c in configurations:
+            if (c.train, c.test) == (train, test) and (not c.methods or not only or set(c.methods) & set(only)):
+                raise node.error("test", f"repeats the configuration {conf.label} (the same pair may appear twice "
+                                         f"only when each names its methods and none is in both)")
         configurations.append(conf)
     if not configurations:
         raise root.error("configurations", "must list at least one {train, test} pair")
@@ -144,6 +159,10 @@ def load_benchmark_config(profile_or_path: str | Path) -> BenchmarkConfig:
     seeds = root.get("seeds", list, [0])
     if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
         raise root.error("seeds", f"must be a non-empty list of non-negative integers, got {seeds!r}")
+    for node, conf_seeds in conf_seeds_nodes:
+        stray = [x for x in conf_seeds if x not in seeds]
+        if stray:
+            raise node.error("seeds", f"names seed {stray[0]}, which is not one of the grid's seeds ({seeds})")
     return BenchmarkConfig(str(path), profile, protocols, lpips_net, tuple(scenes), tuple(configurations),
                            tuple(methods), tuple(seeds), tuple(light_files.values()))
 

@@ -114,14 +114,17 @@ def method_jobs(config: BenchmarkConfig, paths: Paths) -> list[dict[str, Any]]:
                 if not confs:  # every configuration with this train light names its methods, not this one
                     continue
                 for seed in seeds:
+                    confs_s = [c for c in confs if c.runs_seed(seed)]
+                    if not confs_s:
+                        continue
                     jobs.append({
                         "kind": "method", "method": method, "scene": scene, "train": train,
-                        "tests": [c.test for c in confs], "seed": seed, "profile": paths.profile,
+                        "tests": [c.test for c in confs_s], "seed": seed, "profile": paths.profile,
                         "protocols": list(config.protocols), "lpips_net": config.lpips_net,
                         "scene_dir": str(layout.scene_dir(paths.data, paths.profile, scene)),
                         "pred_dir": str(pred_dir(paths, method, scene, train, seed)),
                         "runs_dir": str(paths.runs / paths.profile),
-                        "results": {p: [str(result_path(paths, method, scene, c, seed, p)) for c in confs]
+                        "results": {p: [str(result_path(paths, method, scene, c, seed, p)) for c in confs_s]
                                     for p in config.protocols},
                     })
     return jobs
