@@ -16,6 +16,7 @@ from . import charts, tables, thesis
 from .aggregate import load_results, protocol_tables, published_reference
 from .grids import image_grid
 from .report import write_report
+from .score import predictions_hash
 
 
 def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title: str = "LumiBench results",
@@ -55,13 +56,16 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
             seen.add(key)
             name = f"{r['method']}_{r['scene']}_{r['train_light']}_to_{r['test_light']}_seed{r['seed']}.png"
             target = out / "grids" / name
-            if not Path(r["inputs"]["pred_dir"]).is_dir():
+            scored = r["inputs"].get("pred_meta_sha256")
+            if not Path(r["inputs"]["pred_dir"]).is_dir() or (
+                    scored and predictions_hash(Path(r["inputs"]["pred_dir"])) != scored):
                 # The tables are rebuilt from result files alone (a grid of other machines' runs, or runs/
-                # cleaned): keep the grid drawn when the predictions were here, and never fail for it.
+                # cleaned, or another run's predictions in that folder now): keep the grid drawn when the
+                # scored predictions were here, and never fail for it.
                 if target.is_file():
                     grid_paths.append(target)
                 else:
-                    print(f"note: no image grid for {name[:-4]}: its predictions are not here "
+                    print(f"note: no image grid for {name[:-4]}: the predictions it scored are not here "
                           f"({r['inputs']['pred_dir']})", file=sys.stderr)
                 continue
             grid_paths.append(image_grid(r, target))

@@ -64,6 +64,13 @@ def check_meta(meta: dict[str, Any], path: Path, scene: Path, train_light: str, 
                         f"'{train_light}' (wrong predictions folder or train light?)")
 
 
+def predictions_hash(pred_dir: Path) -> str | None:
+    """sha256 of the predictions' meta.json (rewritten whenever they are): ties a result to the predictions it
+    scored, so an image grid is never drawn from other predictions that later took the same folder."""
+    meta = Path(pred_dir) / "meta.json"
+    return sha256_file(meta) if meta.is_file() else None
+
+
 def dataset_inputs(scene: Path) -> dict[str, Any]:
     """Hashes that tie a result to the exact dataset it was scored on."""
     meta_path = Path(scene) / "dataset.json"
@@ -228,7 +235,7 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
                                if relight_kind == "relight_scaled" else "as predicted (relight/)"),
         },
         "inputs": {"scene_dir": str(scene.resolve()), "pred_dir": str(Path(pred_dir).resolve()),
-                   **dataset_inputs(scene)},
+                   **dataset_inputs(scene), "pred_meta_sha256": predictions_hash(Path(pred_dir))},
         "metrics": result_metrics,
         "per_image": {k: v for k, v in per_image.items() if v},
         "timings": _numbers(meta.get("timings")),

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lumibench.io import sha256_file
+
 from baselines_adapters import get_adapter
 from baselines_adapters.trivial import NoisyGT, expected_psnr
 from benchmark.score import score
@@ -53,6 +55,8 @@ def test_noisy_gt_strict_psnr_is_analytic(noisy_strict):
     assert len(noisy_strict["metric_config"]["lpips_weights"]["sha256"]) == 64
     assert set(noisy_strict["per_image"]["relight"]) == {"r_0000", "r_0001", "r_0002"}
     assert noisy_strict["inputs"]["dataset_spec_hash"] == "fake-0-32"
+    pred = Path(noisy_strict["inputs"]["pred_dir"])  # the predictions it scored, by their meta.json
+    assert noisy_strict["inputs"]["pred_meta_sha256"] == sha256_file(pred / "meta.json")
 
 
 def test_noisy_gt_lumimotion_psnr_per_channel_and_masked(scene_full_alpha, tmp_path):
