@@ -509,7 +509,7 @@ def test_time_window_curriculum_opens_the_times_in_order(ci_dataset, tmp_path, m
     for it, t in enumerate(got[:29], start=1):
         assert t <= lo + (0.2 + 0.8 * (it - 1) / 30) * (hi - lo) + 1e-6, (it, t)
     assert max(got[:10]) < lo + 0.5 * (hi - lo)  # the rule is not vacuous on this data ...
-    free = times_drawn([])
+    free = times_drawn(["stage1.time_window_until=0"])  # (the ci profile has a window of its own)
     assert max(free[:10]) > lo + 0.5 * (hi - lo)  # ... a run without the window draws late times early
     front = times_drawn(["stage1.time_window_until=30", "stage1.time_window_start=0.2", "stage1.time_window_front=1"])
     for it, t in enumerate(front[:29], start=1):
@@ -566,10 +566,10 @@ def test_ci_run_of_spheres_learns(ci_dataset, tmp_path):
     assert 0 <= sep["dynamic_recall"] <= 1 and 0 <= sep["static_recall"] <= 1
 
     # stage 2 on the same run, then: relit under the map it estimated for the train light, the test views
-    # are close to the NVS render (24.8 dB measured). The map's orientation is pinned by the calibration
-    # test (tests/test_shading.py); at ci the estimated map has too little directional structure for it to
-    # show here (turned by 180 degrees about +Z it gave 24.78 dB against 24.84), which is also checked, so
-    # that a stage 2 that starts recovering the sun's direction is noticed
+    # are close to the NVS render (24.0 dB measured). The map's orientation is pinned by the calibration
+    # test (tests/test_shading.py); at ci the map is the fitted sun + sky (stage2.env_init_fit), whose sun
+    # shows here too: turned by 180 degrees about +Z it gave 23.26 dB against 24.01 (the learned map of the
+    # earlier ci profile had no direction to show: 24.78 against 24.84)
     from method.shading.deferred import display, render_pbr_view
     from method.checkpoints import load_trained
     from method.train import train_stage2
@@ -594,7 +594,7 @@ def test_ci_run_of_spheres_learns(ci_dataset, tmp_path):
     psnr_same = -10 * math.log10(sum(same) / len(same))
     psnr_rot = -10 * math.log10(sum(rot) / len(rot))
     assert psnr_same > 20.0, (psnr_same, psnr_rot)
-    assert psnr_same > psnr_rot - 0.5, (psnr_same, psnr_rot)  # never clearly better turned round
+    assert psnr_same > psnr_rot, (psnr_same, psnr_rot)  # the sun where it was fitted: worse turned round
 
 
 def test_stage2_trunk_cache_gives_the_same_deformation_and_head_gradients(monkeypatch):

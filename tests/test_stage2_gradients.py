@@ -99,8 +99,10 @@ def _setup(dynamic=False, uniform_floor_roughness=True, overrides=(), seed=0):
     for k in FROZEN:
         g.t[k].requires_grad_(False)
 
+    # the learned map (the paper's stage 2; the ci profile keeps a fitted one: stage2.env_fixed)
     cfg = load_method_config("ci", ["stage2.rays_per_iteration=64", "stage2.dirs_train=8", "stage2.env_height=4",
-                                    "stage2.env_width=8", "stage2.lambda_env_lower=0.01", *overrides])
+                                    "stage2.env_width=8", "stage2.lambda_env_lower=0.01", "stage2.env_fixed=false",
+                                    *overrides])
     s2 = cfg["stage2"]
     env = LearnableEnvMap(s2["env_height"], s2["env_width"], 0.5).to(D)
     with torch.no_grad():

@@ -31,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
     rc = benchmark_main(["eval", "--config", str(DEMO_GRID), "--data", args.data, "--runs", args.runs,
                          "--results", args.out])
     out = Path(args.out) / grid.profile
-    pred = Path(args.runs) / grid.profile / "lumimotion" / scene / conf.train / "seed0" / "predictions"
+    method = grid.methods[0]  # LumiMotion at the demo's budget (configs/benchmark/demo.yaml), then the floors
+    pred = Path(args.runs) / grid.profile / method / scene / conf.train / "seed0" / "predictions"
     if not (pred / "meta.json").is_file():
         raise UserError(f"LumiMotion produced no predictions (see {out}/report.html and the job's error.log)")
     sheet = demo_sheet(scene_dir, pred, conf.train, conf.test, out / "demo_sheet.png")
