@@ -378,8 +378,7 @@ class Stage1:
                 densify_and_prune(self.scene.g, self.gopt, self.stats, grad_threshold=s["densify_grad_threshold"],
                                   percent_dense=s["percent_dense"], extent=self.scene.extent,
                                   min_opacity=s["prune_opacity"], max_gaussians=s["max_gaussians"],
-                                  max_screen_radius=large_splat_limit(it, cam, s), generator=gen,
-                                  replace_opacity=s["cap_replace_opacity"])
+                                  max_screen_radius=large_splat_limit(it, cam, s), generator=gen)
             if s["opacity_reset_every"] and it % s["opacity_reset_every"] == 0:
                 reset_opacity(self.scene.g, self.gopt)
         timer.lap("density")

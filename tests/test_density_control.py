@@ -89,7 +89,7 @@ def test_clone_copies_a_small_gaussian_at_or_above_the_threshold_exactly_once():
     before = _snapshot(g)
     # 0.5 is exactly the threshold (>= clones), 0.4999 is below it, 0.75 above
     res, _, st = _run(g, [0.5, 0.4999, 0.75])
-    assert res == {"cloned": 2, "split": 0, "pruned": 0, "replaced": 0}
+    assert res == {"cloned": 2, "split": 0, "pruned": 0}
     assert len(g) == 5
     after = _snapshot(g)
     _assert_rows_equal(after, before, [0, 1, 2], [0, 1, 2])  # originals untouched, in place
@@ -101,14 +101,14 @@ def test_below_the_threshold_nothing_changes():
     g = _gaussians([SMALL, BIG])
     before = _snapshot(g)
     res, _, _ = _run(g, [0.49, 0.3])
-    assert res == {"cloned": 0, "split": 0, "pruned": 0, "replaced": 0}
+    assert res == {"cloned": 0, "split": 0, "pruned": 0}
     _assert_rows_equal(_snapshot(g), before, [0, 1], [0, 1])
 
 
 def test_non_finite_gradient_statistics_are_treated_as_zero():
     g = _gaussians([SMALL, SMALL])
     res, _, _ = _run(g, [float("nan"), float("inf")])
-    assert res == {"cloned": 0, "split": 0, "pruned": 0, "replaced": 0} and len(g) == 2
+    assert res == {"cloned": 0, "split": 0, "pruned": 0} and len(g) == 2
 
 
 # ------------------------------------------------------------------------------------------------ split
@@ -117,7 +117,7 @@ def test_split_replaces_a_large_gaussian_by_two_shrunk_children_in_its_plane():
     g = _gaussians([SMALL, (BIG, 0.1), SMALL])
     before = _snapshot(g)
     res, _, _ = _run(g, [0.0, 0.6, 0.0], seed=3)
-    assert res == {"cloned": 0, "split": 1, "pruned": 1, "replaced": 0}
+    assert res == {"cloned": 0, "split": 1, "pruned": 1}
     assert len(g) == 4  # 3 + 2 children - the parent
     after = _snapshot(g)
     _assert_rows_equal(after, before, [0, 1], [0, 2])  # the parent (row 1) is gone, the others keep order
@@ -141,9 +141,9 @@ def test_large_means_largest_scale_above_percent_dense_times_extent():
     # but large at extent 0.5 (0.009 > 0.005)
     g = _gaussians([(0.3, 0.001), (0.009, 0.009)])
     res, _, _ = _run(g, [0.9, 0.9])
-    assert res == {"cloned": 1, "split": 1, "pruned": 1, "replaced": 0} and len(g) == 4
+    assert res == {"cloned": 1, "split": 1, "pruned": 1} and len(g) == 4
     res, _, _ = _run(_gaussians([(0.009, 0.009)]), [0.9], extent=0.5)
-    assert res == {"cloned": 0, "split": 1, "pruned": 1, "replaced": 0}
+    assert res == {"cloned": 0, "split": 1, "pruned": 1}
 
 
 def test_split_children_are_distributed_as_the_parent_splat_and_deterministic():
@@ -157,7 +157,7 @@ def test_split_children_are_distributed_as_the_parent_splat_and_deterministic():
         g = _gaussians([sc] * n, seed=1)
         before = _snapshot(g)
         res, _, _ = _run(g, [1.0] * n, seed=seed)
-        assert res == {"cloned": 0, "split": n, "pruned": n, "replaced": 0} and len(g) == 2 * n
+        assert res == {"cloned": 0, "split": n, "pruned": n} and len(g) == 2 * n
         return before, _snapshot(g)
 
     before, after = run(11)
@@ -184,7 +184,7 @@ def test_prune_transparent_gaussians():
     g = _gaussians([SMALL, SMALL, SMALL], opacities=[0.004, 0.006, 0.5])
     before = _snapshot(g)
     res, _, st = _run(g, [0.0, 0.0, 0.0])
-    assert res == {"cloned": 0, "split": 0, "pruned": 1, "replaced": 0}
+    assert res == {"cloned": 0, "split": 0, "pruned": 1}
     assert len(g) == 2 and st.grad.shape == (2,)
     _assert_rows_equal(_snapshot(g), before, [0, 1], [1, 2])
 
@@ -224,7 +224,7 @@ def test_new_copies_of_a_transparent_gaussian_are_pruned_with_it():
     """A clone copies the opacity, so the opacity rule (applied after densification) removes both."""
     g = _gaussians([SMALL, SMALL], opacities=[0.001, 0.5])
     res, _, _ = _run(g, [0.9, 0.0])
-    assert res == {"cloned": 1, "split": 0, "pruned": 2, "replaced": 0} and len(g) == 1
+    assert res == {"cloned": 1, "split": 0, "pruned": 2} and len(g) == 1
 
 
 # -------------------------------------------------------------------------------------------------- cap
@@ -234,14 +234,14 @@ def test_cap_takes_the_highest_gradients_first():
     g = _gaussians([SMALL, SMALL, BIG, SMALL])
     before = _snapshot(g)
     res, _, _ = _run(g, [0.9, 0.6, 0.7, 0.8], max_gaussians=6)
-    assert res == {"cloned": 2, "split": 0, "pruned": 0, "replaced": 0}
+    assert res == {"cloned": 2, "split": 0, "pruned": 0}
     assert len(g) == 6
     _assert_rows_equal(_snapshot(g), before, [0, 1, 2, 3, 4, 5], [0, 1, 2, 3, 0, 3])
     # the big one first: it is split (net +1), then the best clone
     g = _gaussians([SMALL, SMALL, BIG, SMALL])
     before = _snapshot(g)
     res, _, _ = _run(g, [0.9, 0.6, 0.95, 0.8], max_gaussians=6)
-    assert res == {"cloned": 1, "split": 1, "pruned": 1, "replaced": 0}
+    assert res == {"cloned": 1, "split": 1, "pruned": 1}
     assert len(g) == 6
     after = _snapshot(g)
     _assert_rows_equal(after, before, [0, 1, 2, 3], [0, 1, 3, 0])
@@ -254,7 +254,7 @@ def test_cap_is_never_exceeded():
     assert res["cloned"] == 0 and len(opt.g) == 3
     # room for everything: the cap does not bite
     res, opt, _ = _run(_gaussians([SMALL, BIG, SMALL]), [1.0] * 3, max_gaussians=6)
-    assert res == {"cloned": 2, "split": 1, "pruned": 1, "replaced": 0} and len(opt.g) == 6  # 3 + 2 + 2 - 1
+    assert res == {"cloned": 2, "split": 1, "pruned": 1} and len(opt.g) == 6  # 3 + 2 + 2 - 1
     # random mixes of sizes and gradients
     gen = torch.Generator().manual_seed(0)
     for trial in range(20):
@@ -267,43 +267,6 @@ def test_cap_is_never_exceeded():
         assert len(opt.g) <= cap
         n_cand = sum(x >= 0.3 for x in grads)
         assert res["cloned"] + res["split"] == min(n_cand, cap - n)
-
-
-
-def test_at_the_cap_candidates_replace_the_least_opaque_gaussians_below_the_replace_opacity():
-    # 6 Gaussians at a cap of 6; candidates 0 (0.9) and 1 (0.8), both small; non-candidates 2..5 with opacities
-    # 0.5, 0.03, 0.02, 0.04: below replace_opacity 0.035 are 3 (0.03) and 4 (0.02), the least opaque first
-    ops = [0.5, 0.5, 0.5, 0.03, 0.02, 0.04]
-    g = _gaussians([SMALL] * 6, ops)
-    before = _snapshot(g)
-    res, opt, _ = _run(g, [0.9, 0.8, 0.1, 0.1, 0.1, 0.1], max_gaussians=6, replace_opacity=0.035)
-    assert res == {"cloned": 2, "split": 0, "pruned": 2, "replaced": 2} and len(opt.g) == 6
-    _assert_rows_equal(_snapshot(g), before, [0, 1, 2, 3, 4, 5], [0, 1, 2, 5, 0, 1])
-    # one candidate beyond the cap: only the least opaque (row 4) makes room
-    g = _gaussians([SMALL] * 6, ops)
-    before = _snapshot(g)
-    res, opt, _ = _run(g, [0.9, 0.1, 0.1, 0.1, 0.1, 0.1], max_gaussians=6, replace_opacity=0.035)
-    assert res == {"cloned": 1, "split": 0, "pruned": 1, "replaced": 1}
-    _assert_rows_equal(_snapshot(g), before, [0, 1, 2, 3, 4, 5], [0, 1, 2, 3, 5, 0])
-    # a candidate is never the one replaced, and nothing changes without replace_opacity
-    g = _gaussians([SMALL] * 6, [0.01 + 0.001 * i for i in range(6)])
-    res, opt, _ = _run(g, [0.9, 0.8, 0.1, 0.1, 0.1, 0.1], max_gaussians=6, replace_opacity=0.02)
-    assert res == {"cloned": 2, "split": 0, "pruned": 2, "replaced": 2}
-    assert _run(_gaussians([SMALL] * 6, ops), [0.9, 0.8, 0.1, 0.1, 0.1, 0.1], max_gaussians=6)[0] == \
-        {"cloned": 0, "split": 0, "pruned": 0, "replaced": 0}
-    # random mixes: never over the cap, every candidate taken while there are transparent ones to replace
-    gen = torch.Generator().manual_seed(1)
-    for trial in range(20):
-        n = int(torch.randint(3, 12, (1,), generator=gen))
-        ops_t = (torch.rand(n, generator=gen) * 0.2 + 0.01).tolist()
-        grads = torch.rand(n, generator=gen).tolist()
-        scales = [BIG if b else SMALL for b in (torch.rand(n, generator=gen) < 0.5).tolist()]
-        res, opt, _ = _run(_gaussians(scales, ops_t, seed=trial), grads, max_gaussians=n, grad_threshold=0.5,
-                           replace_opacity=0.1, min_opacity=0.0)
-        assert len(opt.g) <= n
-        n_cand = sum(x >= 0.5 for x in grads)
-        n_free = sum(o < 0.1 and x < 0.5 for o, x in zip(ops_t, grads))
-        assert res["replaced"] == min(n_cand, n_free) == res["cloned"] + res["split"]
 
 
 # ------------------------------------------------------------------------------------ optimiser state
@@ -346,7 +309,7 @@ def test_adam_moments_follow_clone_split_and_prune():
     before, mom = _snapshot(g), _moments(opt)
     st = _stats([0.8, 0.9, 0.0, 0.1, 0.2], radii=[1.0, 2.0, 3.0, 4.0, 5.0])
     res = densify_and_prune(g, opt, st, generator=torch.Generator().manual_seed(0), **DEFAULTS)
-    assert res == {"cloned": 1, "split": 1, "pruned": 2, "replaced": 0}
+    assert res == {"cloned": 1, "split": 1, "pruned": 2}
     # rows: originals 0, 3, 4 (1 split, 2 pruned), then the clone of 0, then 1's two children
     assert len(g) == 6
     _assert_rows_equal(_snapshot(g), before, [0, 1, 2, 3], [0, 3, 4, 0])

@@ -2,9 +2,7 @@
 screen-space positional gradient is high, prune transparent or oversized ones, reset opacities.
 
 A cap on the Gaussian count (``max_gaussians``) keeps the model no larger than the profile allows:
-when the candidates would exceed it, those with the highest gradients are taken first. With
-``replace_opacity`` > 0, candidates beyond the cap may take the place of the least opaque Gaussians below that
-opacity (nearly invisible ones), so the budget spent early keeps moving to where the error is.
+when the candidates would exceed it, those with the highest gradients are taken first.
 """
 from __future__ import annotations
 
@@ -51,8 +49,7 @@ def _rows(g: Gaussians, idx: torch.Tensor) -> dict[str, torch.Tensor]:
 
 def densify_and_prune(g: Gaussians, opt: GaussianAdam, stats: DensityStats, *, grad_threshold: float,
                       percent_dense: float, extent: float, min_opacity: float, max_gaussians: int,
-                      max_screen_radius: float | None, generator: torch.Generator,
-                      replace_opacity: float = 0.0) -> dict[str, int]:
+                      max_screen_radius: float | None, generator: torch.Generator) -> dict[str, int]:
     """One density-control step; returns the counts of cloned, split and pruned Gaussians."""
     n0 = len(g)
     grads = stats.mean()
@@ -63,17 +60,8 @@ def densify_and_prune(g: Gaussians, opt: GaussianAdam, stats: DensityStats, *, g
     clone_idx = torch.nonzero(cand & ~big).squeeze(1)
     split_idx = torch.nonzero(cand & big).squeeze(1)
     # the cap: each clone adds one Gaussian, each split one net (two replace one); highest gradients first
-    replaced = torch.zeros(n0, dtype=torch.bool, device=grads.device)
     if max_gaussians > 0:
         room = max(0, max_gaussians - n0)
-        excess = clone_idx.numel() + split_idx.numel() - room
-        if excess > 0 and replace_opacity > 0:
-            # the least opaque non-candidates below replace_opacity make room, one for each candidate beyond the cap
-            op = g.opacities.detach().reshape(-1)
-            free = torch.nonzero((op < replace_opacity) & ~cand).squeeze(1)
-            free = free[torch.argsort(op[free], stable=True)[:excess]]
-            replaced[free] = True
-            room += free.numel()
         if clone_idx.numel() + split_idx.numel() > room:
             idx = torch.cat([clone_idx, split_idx])
             order = torch.argsort(grads[idx], descending=True, stable=True)[:room]
@@ -108,7 +96,6 @@ def densify_and_prune(g: Gaussians, opt: GaussianAdam, stats: DensityStats, *, g
     n1 = len(g)
     prune = torch.zeros(n1, dtype=torch.bool, device=grads.device)
     prune[split_idx] = True  # the split originals
-    prune[:n0] |= replaced
     prune |= g.opacities.detach() < min_opacity
     if max_screen_radius is not None:
         prune |= stats.max_radii > max_screen_radius
@@ -118,8 +105,7 @@ def densify_and_prune(g: Gaussians, opt: GaussianAdam, stats: DensityStats, *, g
     keep = ~prune
     opt.keep(keep)
     stats.reset(len(g))
-    return {"cloned": int(clone_idx.numel()), "split": int(split_idx.numel()), "pruned": int(prune.sum()),
-            "replaced": int(replaced.sum())}
+    return {"cloned": int(clone_idx.numel()), "split": int(split_idx.numel()), "pruned": int(prune.sum())}
 
 
 def reset_opacity(g: Gaussians, opt: GaussianAdam, value: float = 0.01) -> None:
