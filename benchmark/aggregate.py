@@ -98,6 +98,12 @@ class Group:
     not_run: list[dict[str, Any]] = field(default_factory=list)
     reference: str | None = None  # e.g. "published, on the paper's dataset": not our runs
     notes: list[str] = field(default_factory=list)
+    # provenance of the successful runs: (adapter version, training settings' sha256 or None) -> scenes
+    provenance: dict[tuple[str, str | None], set[str]] = field(default_factory=dict)
+
+    def mixed_provenance(self) -> bool:
+        """True when the row's runs come from more than one adapter version or recorded training setting."""
+        return len(self.provenance) > 1
 
     @property
     def n_failed(self) -> int:
@@ -193,6 +199,8 @@ def aggregate(results: list[dict[str, Any]]) -> list[Group]:
             g.failures.append({"scene": r["scene"], "seed": r["seed"], "error": r.get("error")})
             continue
         g.n_ok += 1
+        settings = (r.get("inputs") or {}).get("method_settings_sha256")
+        g.provenance.setdefault((str(r["adapter_version"]), settings), set()).add(r["scene"])
         for col in COLUMNS + EXTRA_COLUMNS:
             v = metric_value(r, col.key)
             if v is not None:

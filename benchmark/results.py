@@ -13,7 +13,9 @@ malformed file is refused with a message naming the file and the field rather th
      "metric_config": {"lpips_net", "lpips_input_range", "psnr_channels", "masking", "ssim",
                        "lpips_weights": {"file", "sha256", "package"}},
      "inputs": {"scene_dir", "pred_dir", "dataset_spec_hash", "dataset_json_sha256",
-                "pred_meta_sha256" (the predictions' meta.json; absent in older results)},
+                "pred_meta_sha256" (the predictions' meta.json; absent in older results),
+                "method_settings_sha256" (the settings the run was trained with, in-project methods; absent in
+                older results)},
      "metrics": {"nvs": {psnr, ssim, lpips} | null, "albedo": {psnr, ssim, lpips, scale[3]} | null,
                  "roughness": {mse} | null, "relight": {psnr, ssim, lpips} | null,
                  "delta_psnr": {db, percent} | null, "separation": {iou, balanced_accuracy} | null,

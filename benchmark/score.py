@@ -235,7 +235,9 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
                                if relight_kind == "relight_scaled" else "as predicted (relight/)"),
         },
         "inputs": {"scene_dir": str(scene.resolve()), "pred_dir": str(Path(pred_dir).resolve()),
-                   **dataset_inputs(scene), "pred_meta_sha256": predictions_hash(Path(pred_dir))},
+                   **dataset_inputs(scene), "pred_meta_sha256": predictions_hash(Path(pred_dir)),
+                   **({"method_settings_sha256": meta["settings_sha256"]}
+                      if isinstance(meta.get("settings_sha256"), str) else {})},
         "metrics": result_metrics,
         "per_image": {k: v for k, v in per_image.items() if v},
         "timings": _numbers(meta.get("timings")),

@@ -136,6 +136,15 @@ def markdown(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[
         lines += ["### Not run", ""]
         lines += [f"- {g.method} {_pretty(g.configuration)} {f['scene']}: {f['error']}" for g, f in not_run]
         lines.append("")
+    mixed = [g for g in groups if not g.reference and g.mixed_provenance()]
+    if mixed:
+        lines += ["### Rows that mix runs", "",
+                  "Each row below averages runs of more than one adapter version or training setting (a stored "
+                  "result is never recomputed; delete the stale ones' result files, or their runs, to redo them):", ""]
+        lines += [f"- {g.method} {_pretty(g.configuration)}: " + "; ".join(
+            f"version {v}, settings {h[:12] if h else 'not recorded'} on {', '.join(sorted(sc))}"
+            for (v, h), sc in sorted(g.provenance.items(), key=lambda kv: (kv[0][0], kv[0][1] or ""))) for g in mixed]
+        lines.append("")
     notes = [(g, n) for g in reference for n in getattr(g, "notes", ())]
     if notes:
         lines += ["### Notes on the reference rows", ""]

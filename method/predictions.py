@@ -94,6 +94,7 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
     write_meta(pred, {"method": method, "version": VERSION, "seed": int(seed), "device": device_name(dev),
                       "scene": scene_dir.name, "train_light": light, "timings": timings,
                       "model_size": {"gaussians": len(scene.g), "parameters": int(n_params)},
+                      **({"settings_sha256": h} if (h := run_record.settings_hash(run_dir)) else {}),
                       **({"relight_albedo_scale": [float(c) for c in scale]} if scale is not None else {})})
     return pred
 

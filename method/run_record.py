@@ -92,6 +92,27 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
                         f"profile and overrides, or start another --run-dir")
 
 
+# bookkeeping keys: how often a run logs, evaluates or checkpoints does not change what it trains
+BOOKKEEPING_KEYS = ("checkpoint_every", "log_every", "eval_every")
+
+
+def settings_hash(run_dir: Path) -> str | None:
+    """sha256 of the settings a run was trained with (its record's profile, model, data, stage1 and stage2
+    sections as canonical JSON, bookkeeping keys left out): the same for every run of one setting, whatever
+    its scene, light, seed or machine, so a table can tell when its rows mix settings. None with no record."""
+    import hashlib
+
+    rec = read_record(run_dir)
+    if not rec:
+        return None
+    flat = {}
+    for sec in SECTIONS[2]:
+        if sec in rec:
+            flat.update(_flat(rec[sec], sec) if isinstance(rec[sec], dict) else {sec: rec[sec]})
+    kept = {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
+
+
 def write_record(run_dir: Path, cfg: dict, ident: dict) -> None:
     atomic_write_text(Path(run_dir) / "config.yaml", yaml.safe_dump({**cfg, "run": ident}, sort_keys=False))
 

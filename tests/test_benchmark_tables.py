@@ -293,3 +293,32 @@ def test_report_lists_methods_not_run_as_not_run_not_as_failures(tmp_path):
     assert "5 runs, 1 failed, 4 jobs of methods not run here (not failures)" in html
     listed = html.split("<h2>Per-run result files</h2>", 1)[1]
     assert listed.count("not run</li>") == 4 and listed.count("<span class=fail>failed</span>") == 1
+
+
+def _with_provenance(r: dict, version: str = "1", settings: str | None = None) -> dict:
+    r = dict(r, adapter_version=version)
+    r["inputs"] = dict(r["inputs"], **({"method_settings_sha256": settings} if settings else {}))
+    return r
+
+
+def test_rows_that_mix_adapter_versions_or_settings_are_named():
+    a, b = "aa" * 32, "bb" * 32
+    same = [_with_provenance(fake_result("ours", scene=s), settings=a) for s in ("s1", "s2")]
+    md = tables.markdown(aggregate(same), check_consistent(same))
+    assert "Rows that mix runs" not in md
+    mixed = same + [_with_provenance(fake_result("ours", scene="s3"), settings=b)]
+    md = tables.markdown(aggregate(mixed), check_consistent(mixed))
+    block = md.split("### Rows that mix runs")[1]
+    assert f"settings {a[:12]} on s1, s2" in block and f"settings {b[:12]} on s3" in block
+    assert "ours city → sunrise" in block
+    # another adapter version with the same settings is named too, and a result recording no settings
+    versions = same + [_with_provenance(fake_result("ours", scene="s3"), version="2", settings=a),
+                       _with_provenance(fake_result("ours", scene="s4"))]
+    block = tables.markdown(aggregate(versions), check_consistent(versions)).split("### Rows that mix runs")[1]
+    assert "version 2, settings aaaaaaaaaaaa on s3" in block and "settings not recorded on s4" in block
+    only_version = same + [_with_provenance(fake_result("ours", scene="s3"), version="2", settings=a)]
+    assert "version 2, settings aaaaaaaaaaaa on s3" in tables.markdown(aggregate(only_version),
+                                                                         check_consistent(only_version))
+    # failed runs do not count: they have no settings to mix
+    with_failure = same + [fake_result("ours", scene="s3", status="failed")]
+    assert "Rows that mix runs" not in tables.markdown(aggregate(with_failure), check_consistent(with_failure))

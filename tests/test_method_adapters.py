@@ -58,6 +58,10 @@ def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method, monkeypatch
     assert len(meta["relight_albedo_scale"]) == 3
     res = score(ci_dataset, out, "city", "sunrise")
     assert res["metrics"]["relight"]["albedo_scale"] == meta["relight_albedo_scale"]
+    # the result names the settings the run was trained with (a table tells when its rows mix them)
+    from method.run_record import settings_hash
+
+    assert res["inputs"]["method_settings_sha256"] == meta["settings_sha256"] == settings_hash(run_dir)
     for kind in ("albedo", "relight", "nvs"):
         assert np.isfinite(res["metrics"][kind]["psnr"]), kind
     assert res["metrics"]["roughness"]["mse"] >= 0

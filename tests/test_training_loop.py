@@ -185,3 +185,24 @@ def test_cli_stage2_with_resume_starts_stage2_and_refuses_other_settings(ci_data
     assert "stage1.lr_p" in err and "Traceback" not in err
     assert main(base + TINY) == 0
     assert (run / "metrics_stage2.json").is_file() and (run / "predictions" / "meta.json").is_file()
+
+
+def test_settings_hash_follows_the_training_settings_only(tmp_path):
+    """Equal for runs of one setting on another scene, seed or machine, or with other bookkeeping periods;
+    different when a trained setting differs; None without a record."""
+    from method.config import load_method_config
+    from method.run_record import identity, settings_hash, write_record
+
+    cfg = load_method_config("ci", [])
+    runs = {}
+    for name, overrides, ident in (
+            ("base", [], ("a", "city", 0, "cpu")),
+            ("other_run", ["stage1.checkpoint_every=7", "stage1.log_every=3"], ("b", "sunrise", 2, "cuda")),
+            ("other_setting", ["stage1.lambda_normal=0.5"], ("a", "city", 0, "cpu"))):
+        c = load_method_config("ci", overrides)
+        write_record(tmp_path / name, c, identity(tmp_path / ident[0], ident[1], ident[2], ident[3], False))
+        runs[name] = settings_hash(tmp_path / name)
+    assert runs["base"] == runs["other_run"] and len(runs["base"]) == 64
+    assert runs["other_setting"] != runs["base"]
+    assert settings_hash(tmp_path / "none") is None
+    assert cfg["stage1"]["lambda_normal"] != 0.5
