@@ -102,8 +102,10 @@ class Group:
     provenance: dict[tuple[str, str | None], set[str]] = field(default_factory=dict)
 
     def mixed_provenance(self) -> bool:
-        """True when the row's runs come from more than one adapter version or recorded training setting."""
-        return len(self.provenance) > 1
+        """True when the row's runs come from more than one adapter version or recorded training setting
+        (results scored before settings were recorded, session 18, count as any setting)."""
+        return (len({v for v, _ in self.provenance}) > 1
+                or len({h for _, h in self.provenance if h is not None}) > 1)
 
     @property
     def n_failed(self) -> int:

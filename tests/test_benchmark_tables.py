@@ -319,6 +319,9 @@ def test_rows_that_mix_adapter_versions_or_settings_are_named():
     only_version = same + [_with_provenance(fake_result("ours", scene="s3"), version="2", settings=a)]
     assert "version 2, settings aaaaaaaaaaaa on s3" in tables.markdown(aggregate(only_version),
                                                                          check_consistent(only_version))
+    # a result that records no settings (scored before they were recorded) is not a mix by itself
+    unrecorded = same + [_with_provenance(fake_result("ours", scene="s3"))]
+    assert "Rows that mix runs" not in tables.markdown(aggregate(unrecorded), check_consistent(unrecorded))
     # failed runs do not count: they have no settings to mix
     with_failure = same + [fake_result("ours", scene="s3", status="failed")]
     assert "Rows that mix runs" not in tables.markdown(aggregate(with_failure), check_consistent(with_failure))
