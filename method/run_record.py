@@ -99,16 +99,30 @@ BOOKKEEPING_KEYS = ("checkpoint_every", "log_every", "eval_every")
 def settings_hash(run_dir: Path) -> str | None:
     """sha256 of the settings a run was trained with (its record's profile, model, data, stage1 and stage2
     sections as canonical JSON, bookkeeping keys left out): the same for every run of one setting, whatever
-    its scene, light, seed or machine, so a table can tell when its rows mix settings. None with no record."""
+    its scene, light, seed or machine, so a table can tell when its rows mix settings. A key added to the
+    settings file after the run was recorded counts at its profile's value (a new setting's default keeps the
+    old behaviour), so adding one does not set old runs apart. None with no record."""
     import hashlib
 
     rec = read_record(run_dir)
     if not rec:
         return None
+    known: dict = {}
+    try:
+        from method.config import load_method_config
+
+        known = load_method_config(str(rec.get("profile")), [])
+    except (UserError, OSError):
+        pass  # a profile this version does not know: the record alone
     flat = {}
     for sec in SECTIONS[2]:
-        if sec in rec:
-            flat.update(_flat(rec[sec], sec) if isinstance(rec[sec], dict) else {sec: rec[sec]})
+        if sec not in rec:
+            continue
+        if isinstance(rec[sec], dict):
+            flat.update({k: v for k, v in _flat(known.get(sec) or {}, sec).items()})
+            flat.update(_flat(rec[sec], sec))
+        else:
+            flat[sec] = rec[sec]
     kept = {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS}
     return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
 

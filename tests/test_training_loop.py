@@ -204,5 +204,18 @@ def test_settings_hash_follows_the_training_settings_only(tmp_path):
         runs[name] = settings_hash(tmp_path / name)
     assert runs["base"] == runs["other_run"] and len(runs["base"]) == 64
     assert runs["other_setting"] != runs["base"]
+    # a record from before a setting existed (the key absent) equals one with the profile's value of it,
+    # and not one with another value
+    import yaml
+
+    for name, value in (("older", None), ("other_value", 0.5)):
+        rec = yaml.safe_load((tmp_path / "base" / "config.yaml").read_text())
+        if value is None:
+            del rec["data"]["train_frames"]
+        else:
+            rec["data"]["train_frames"] = value
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(rec))
+    assert settings_hash(tmp_path / "older") == runs["base"] != settings_hash(tmp_path / "other_value")
     assert settings_hash(tmp_path / "none") is None
     assert cfg["stage1"]["lambda_normal"] != 0.5
