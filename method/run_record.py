@@ -9,6 +9,7 @@ refused naming the other process.
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import os
 import socket
@@ -19,6 +20,7 @@ import yaml
 
 from lumibench.errors import UserError
 from lumibench.io import atomic_write_json, atomic_write_text
+from method.config import load_method_config
 
 IDENTITY_KEYS = ("scene_name", "light", "seed")
 # configuration sections that define a stage's run (a resume or the next stage must agree with the record)
@@ -102,15 +104,11 @@ def settings_hash(run_dir: Path) -> str | None:
     its scene, light, seed or machine, so a table can tell when its rows mix settings. A key added to the
     settings file after the run was recorded counts at its profile's value (a new setting's default keeps the
     old behaviour), so adding one does not set old runs apart. None with no record."""
-    import hashlib
-
     rec = read_record(run_dir)
     if not rec:
         return None
     known: dict = {}
     try:
-        from method.config import load_method_config
-
         known = load_method_config(str(rec.get("profile")), [])
     except (UserError, OSError):
         pass  # a profile this version does not know: the record alone
@@ -119,7 +117,7 @@ def settings_hash(run_dir: Path) -> str | None:
         if sec not in rec:
             continue
         if isinstance(rec[sec], dict):
-            flat.update({k: v for k, v in _flat(known.get(sec) or {}, sec).items()})
+            flat.update(_flat(known.get(sec) or {}, sec))
             flat.update(_flat(rec[sec], sec))
         else:
             flat[sec] = rec[sec]
