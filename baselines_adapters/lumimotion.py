@@ -7,7 +7,8 @@ skipped when their outputs exist, so scoring another test light or re-running `m
 
 * ``lumimotion``  stage 1 + stage 2 on the dynamic variant
 * ``wo_stage2``   stage 1 only; the canonical colour is the albedo, roughness stays at its initial value,
-                  relit with the same shading (paper's "w/o stage 2")
+                  relit with the same shading (paper's "w/o stage 2"); it takes the finished stage 1 of
+                  ``lumimotion`` (same budget, scene, light, seed, settings) when there is one
 * ``wo_dc``       no delta colour: moving shadows must be explained by geometry
 * ``wo_P``        no static/dynamic separation: P = 1 for every Gaussian
 * ``static``      the same pipeline without the deformation network, on ``<scene>_statictimestepNNNN``
@@ -130,13 +131,20 @@ class LumiMotionAdapter(MethodAdapter):
         from method.data import available_lights
         from method.checkpoints import checkpoint_paths
         from method.predictions import write_predictions
-        from method.train import train_stage1, train_stage2
+        from method.train import share_stage1, train_stage1, train_stage2
 
         profile = profile or "ci"
         cfg = load_method_config(profile, self.overrides(profile))
         run_dir = Path(out_dir).parent if Path(out_dir).name == "predictions" else (
             Path(runs_dir or "runs") / self.name / Path(scene_dir).name / train_light / f"seed{seed}")
         train_scene = self.scene_for(Path(scene_dir))
+        if not self.variant["stage2"] and not (run_dir / "metrics_stage1.json").is_file():
+            # w/o stage 2 is LumiMotion's stage 1 itself: take the finished one of the same scene, light, seed
+            # and settings when there is one, so the ablation compares the very same stage 1
+            # (RUNS/PROFILE/<name>/<scene>/<light>/seed<k> -> RUNS/PROFILE/lumimotion[@budget]/<scene>/...)
+            where = run_dir.resolve()
+            sibling = where.parents[3] / "@".join(filter(None, ("lumimotion", self.budget))) / Path(*where.parts[-3:])
+            share_stage1(sibling, run_dir, cfg, scene=train_scene.name, light=train_light, seed=seed)
         if not (run_dir / "metrics_stage1.json").is_file():
             train_stage1(train_scene, train_light, run_dir, cfg, seed=seed, static=self.variant["static"],
                          resume=bool(checkpoint_paths(run_dir, 1)), progress=False)

@@ -170,6 +170,67 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
     return metrics
 
 
+def _stage1_settings(sections: dict) -> dict:
+    """The settings that decide what stage 1 trains (bookkeeping keys left out), flat."""
+    flat = {}
+    for sec in run_record.SECTIONS[1]:
+        val = sections.get(sec)
+        flat.update(run_record._flat(val, sec) if isinstance(val, dict) else {sec: val})
+    return {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in run_record.BOOKKEEPING_KEYS}
+
+
+def share_stage1(source: str | Path, run_dir: str | Path, cfg: dict, *, scene: str, light: str, seed: int) -> bool:
+    """Give ``run_dir`` the finished stage 1 of ``source`` when that run trained exactly this stage 1: the same
+    scene, light, seed, dynamic capture and every stage-1 setting (``cfg``'s profile, model, data, stage1
+    sections, bookkeeping aside). Its checkpoint is linked (copied across file systems), its log, renders,
+    timings and metrics copied, and the record names the source (``run.stage1_shared_from``), so an ablation
+    that differs from its source only after stage 1 (``wo_stage2``) compares the very same stage 1 and does
+    not pay for it twice. False, with nothing written, when the source is unfinished or differs in anything."""
+    import os
+    import shutil
+
+    src, dst = Path(source), Path(run_dir)
+    rec = run_record.read_record(src)
+    ident = (rec or {}).get("run")
+    if (not rec or not isinstance(ident, dict) or not (src / "metrics_stage1.json").is_file()
+            or not checkpoint_paths(src, 1)):
+        return False
+    if (str(ident.get("scene_name")), str(ident.get("light")), str(ident.get("seed")), ident.get("static")) != (
+            Path(scene).name, light, str(seed), False):
+        return False
+    if _stage1_settings(rec) != _stage1_settings(cfg):
+        return False
+    with run_record.RunLock(dst):
+        if checkpoint_paths(dst, 1) or (dst / "metrics_stage1.json").is_file():
+            return False  # this run has a stage 1 of its own (or a partial one to resume)
+        _, ck = checkpoint_paths(src, 1)[-1]
+        (dst / "checkpoints").mkdir(parents=True, exist_ok=True)
+        tmp = dst / "checkpoints" / f".{ck.name}.tmp"
+        tmp.unlink(missing_ok=True)
+        try:
+            os.link(ck, tmp)
+        except OSError:
+            shutil.copyfile(ck, tmp)
+        os.replace(tmp, dst / "checkpoints" / ck.name)
+        if (src / "log_stage1.jsonl").is_file():
+            shutil.copyfile(src / "log_stage1.jsonl", dst / "log_stage1.jsonl")
+        for part in ("renders/stage1", "renders/sheet_stage1.png"):
+            if (src / part).is_dir():
+                shutil.copytree(src / part, dst / part, dirs_exist_ok=True)
+            elif (src / part).is_file():
+                (dst / part).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(src / part, dst / part)
+        run_record.write_record(dst, cfg, {**ident, "stage1_shared_from": str(src.resolve())})
+        try:
+            times = json.loads((src / "timings.json").read_text())
+        except (OSError, ValueError):
+            times = {}
+        run_record.merge_json(dst / "timings.json", {**{k: v for k, v in times.items() if k != "stage2"},
+                                                     "stage1_shared_from": str(src.resolve())})
+        atomic_write_json(dst / "metrics_stage1.json", json.loads((src / "metrics_stage1.json").read_text()))
+    return True
+
+
 def load_training_scene(scene_dir: str | Path, light: str, cfg: dict, device) -> SceneData:
     """The scene as a run of ``cfg`` trains on it: the training frames its ``data.train_frames`` keeps."""
     return load_scene(scene_dir, light, cfg["data"]["background"], device, train_frames=cfg["data"]["train_frames"])

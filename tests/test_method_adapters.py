@@ -79,3 +79,45 @@ def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method, monkeypatch
     stamp = [p.stat().st_mtime_ns for p in cks]
     adapter.run(ci_dataset, "city", ["sunset"], 0, "ci", out, runs)
     assert [p.stat().st_mtime_ns for p in sorted((run_dir / "checkpoints").iterdir())] == stamp
+
+
+@pytest.mark.slow
+def test_wo_stage2_takes_lumimotions_stage1_only_when_it_is_the_same(ci_dataset, tmp_path, monkeypatch):
+    """w/o stage 2 is LumiMotion's stage 1: with a finished one of the same scene, light, seed and settings
+    beside it, the ablation trains nothing and scores that very checkpoint; any difference trains its own."""
+    import baselines_adapters.lumimotion as lm
+    from method.checkpoints import checkpoint_paths
+    from method.config import load_method_config
+    from method.run_record import read_record
+    from method.train import share_stage1, train_stage1
+
+    runs = tmp_path / "runs" / "ci"
+    cfg = load_method_config("ci", get_adapter(f"lumimotion@{BUDGET}").overrides("ci"))
+    src = runs / f"lumimotion@{BUDGET}" / ci_dataset.name / "city" / "seed0"
+    train_stage1(ci_dataset, "city", src, cfg, seed=0, progress=False)
+
+    # anything stage 1 depends on differs: nothing is shared, nothing written
+    other = load_method_config("ci", get_adapter(f"lumimotion@{BUDGET}").overrides("ci") + ["stage1.lr_opacity=0.04"])
+    for kw, c in (({"seed": 1}, cfg), ({"light": "sunset"}, cfg), ({}, other)):
+        dst = tmp_path / "no" / str(len(kw))
+        args = {"scene": ci_dataset.name, "light": "city", "seed": 0, **kw}
+        assert not share_stage1(src, dst, c, **args), kw
+        assert not (dst / "metrics_stage1.json").exists() and not checkpoint_paths(dst, 1)
+    # how often a run logs or checkpoints does not change what it trains
+    noisy = load_method_config("ci", get_adapter(f"lumimotion@{BUDGET}").overrides("ci") + ["stage1.log_every=7"])
+    assert share_stage1(src, tmp_path / "yes", noisy, scene=ci_dataset.name, light="city", seed=0)
+
+    def no_training(*a, **k):
+        raise AssertionError("wo_stage2 trained a stage 1 of its own")
+
+    monkeypatch.setattr("method.train.train_stage1", no_training)
+    out = runs / f"wo_stage2@{BUDGET}" / ci_dataset.name / "city" / "seed0" / "predictions"
+    get_adapter(f"wo_stage2@{BUDGET}").run(ci_dataset, "city", ["sunrise"], 0, "ci", out, runs)
+    dst = out.parent
+    (_, a), (_, b) = checkpoint_paths(src, 1)[-1], checkpoint_paths(dst, 1)[-1]
+    assert a.name == b.name and a.read_bytes() == b.read_bytes()
+    assert read_record(dst)["run"]["stage1_shared_from"] == str(src.resolve())
+    metrics = [json.loads((d / "metrics_stage1.json").read_text()) for d in (src, dst)]
+    assert metrics[0] == metrics[1]
+    assert not (dst / "metrics_stage2.json").exists() and (out / "albedo").is_dir()
+    assert lm.VARIANTS["wo_stage2"]["overrides"] == []  # the premise: the ablation's stage 1 is LumiMotion's
