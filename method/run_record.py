@@ -98,22 +98,18 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
 BOOKKEEPING_KEYS = ("checkpoint_every", "log_every", "eval_every")
 
 
-def settings_hash(run_dir: Path) -> str | None:
-    """sha256 of the settings a run was trained with (its record's profile, model, data, stage1 and stage2
-    sections as canonical JSON, bookkeeping keys left out): the same for every run of one setting, whatever
-    its scene, light, seed or machine, so a table can tell when its rows mix settings. A key added to the
-    settings file after the run was recorded counts at its profile's value (a new setting's default keeps the
-    old behaviour), so adding one does not set old runs apart. None with no record."""
-    rec = read_record(run_dir)
-    if not rec:
-        return None
+def recorded_settings(rec: dict, stage: int = 2) -> dict:
+    """The settings of a run's record (or of a resolved configuration) that decide what its stages up to
+    ``stage`` train, flat (``stage1.lr_opacity``), bookkeeping keys left out. A key added to the settings
+    file after the run was recorded counts at its profile's value (a new setting's default keeps the old
+    behaviour), so adding one does not set old runs apart."""
     known: dict = {}
     try:
         known = load_method_config(str(rec.get("profile")), [])
     except (UserError, OSError):
         pass  # a profile this version does not know: the record alone
     flat = {}
-    for sec in SECTIONS[2]:
+    for sec in SECTIONS[stage]:
         if sec not in rec:
             continue
         if isinstance(rec[sec], dict):
@@ -121,8 +117,17 @@ def settings_hash(run_dir: Path) -> str | None:
             flat.update(_flat(rec[sec], sec))
         else:
             flat[sec] = rec[sec]
-    kept = {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS}
-    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
+    return {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS}
+
+
+def settings_hash(run_dir: Path) -> str | None:
+    """sha256 of the settings a run was trained with (:func:`recorded_settings` of both stages as canonical
+    JSON): the same for every run of one setting, whatever its scene, light, seed or machine, so a table can
+    tell when its rows mix settings. None with no record."""
+    rec = read_record(run_dir)
+    if not rec:
+        return None
+    return hashlib.sha256(json.dumps(recorded_settings(rec, 2), sort_keys=True).encode()).hexdigest()
 
 
 def write_record(run_dir: Path, cfg: dict, ident: dict) -> None:

@@ -170,19 +170,10 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
     return metrics
 
 
-def _stage1_settings(sections: dict) -> dict:
-    """The settings that decide what stage 1 trains (bookkeeping keys left out), flat."""
-    flat = {}
-    for sec in run_record.SECTIONS[1]:
-        val = sections.get(sec)
-        flat.update(run_record._flat(val, sec) if isinstance(val, dict) else {sec: val})
-    return {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in run_record.BOOKKEEPING_KEYS}
-
-
 def share_stage1(source: str | Path, run_dir: str | Path, cfg: dict, *, scene: str, light: str, seed: int) -> bool:
     """Give ``run_dir`` the finished stage 1 of ``source`` when that run trained exactly this stage 1: the same
     scene, light, seed, dynamic capture and every stage-1 setting (``cfg``'s profile, model, data, stage1
-    sections, bookkeeping aside). Its checkpoint is linked (copied across file systems), its log, renders,
+    sections, bookkeeping aside, a key the record predates at its profile's value). Its checkpoint is linked (copied across file systems), its log, renders,
     timings and metrics copied, and the record names the source (``run.stage1_shared_from``), so an ablation
     that differs from its source only after stage 1 (``wo_stage2``) compares the very same stage 1 and does
     not pay for it twice. False, with nothing written, when the source is unfinished or differs in anything."""
@@ -198,7 +189,7 @@ def share_stage1(source: str | Path, run_dir: str | Path, cfg: dict, *, scene: s
     if (str(ident.get("scene_name")), str(ident.get("light")), str(ident.get("seed")), ident.get("static")) != (
             Path(scene).name, light, str(seed), False):
         return False
-    if _stage1_settings(rec) != _stage1_settings(cfg):
+    if run_record.recorded_settings(rec, 1) != run_record.recorded_settings(cfg, 1):
         return False
     with run_record.RunLock(dst):
         if checkpoint_paths(dst, 1) or (dst / "metrics_stage1.json").is_file():
