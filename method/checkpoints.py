@@ -63,9 +63,10 @@ def scene_state(scene: DynamicScene) -> dict:
 
 
 def build_net(m: dict) -> DeformNet:
-    """The deformation network of a ``model`` configuration section."""
+    """The deformation network of a ``model`` configuration section (a checkpoint from before
+    ``mlp_precision`` existed was trained in fp32)."""
     return DeformNet(m["mlp_depth"], m["mlp_width"], m["mlp_skip"], m["pos_freqs"], m["time_freqs"],
-                     m["time_net_width"], m["time_net_out"])
+                     m["time_net_width"], m["time_net_out"], m.get("mlp_precision", "fp32"))
 
 
 def scene_from_checkpoint(ck: dict, cfg: dict, device) -> DynamicScene:

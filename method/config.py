@@ -16,6 +16,7 @@ import yaml
 from lumibench.config import load_yaml
 from lumibench.errors import UserError
 from lumibench.profiles import CONFIG_DIR, load_profile
+from method.model.deform import PRECISIONS
 
 METHOD_CONFIG = CONFIG_DIR / "method" / "lumimotion.yaml"
 
@@ -130,6 +131,9 @@ def _validate(cfg: dict) -> None:
             raise UserError(f"key 'model.{key}' must be >= 1 (got {m[key]})")
     if not 0 <= m["mlp_skip"] < m["mlp_depth"]:
         raise UserError(f"key 'model.mlp_skip' must be in [0, mlp_depth) (got {m['mlp_skip']})")
+    if m["mlp_precision"] not in PRECISIONS:
+        raise UserError(f"key 'model.mlp_precision' must be one of {', '.join(PRECISIONS)} "
+                        f"(got {m['mlp_precision']!r})")
     if m["p_temperature"] <= 0:
         raise UserError(f"key 'model.p_temperature' must be positive (got {m['p_temperature']})")
     if s["init_points"] < 1:

@@ -153,6 +153,36 @@ def test_p_zero_makes_geometry_time_independent():
     assert not torch.allclose(a.colours, b.colours)
 
 
+def test_bf16_trunk_follows_the_fp32_network_and_keeps_fp32_outputs():
+    """model.mlp_precision=bf16 runs the trunk's products in bfloat16: the same network within bf16's
+    rounding (values and gradients), outputs and gradients in fp32, and not bit-equal (it is on)."""
+    torch.manual_seed(3)
+    ref = DeformNet(4, 64, 2, 6, 6, 32, 30)
+    for head in (ref.d_mu, ref.d_rot, ref.d_col):
+        torch.nn.init.normal_(head.weight, std=0.1)
+    low = DeformNet(4, 64, 2, 6, 6, 32, 30, precision="bf16")
+    low.load_state_dict(ref.state_dict())
+    x = torch.rand(500, 3) * 2 - 1
+    outs, grads = [], []
+    for net in (ref, low):
+        xi = x.clone().requires_grad_()
+        out = net(xi, 0.37)
+        sum(o.square().sum() for o in out).backward()
+        outs.append(out)
+        grads.append([xi.grad] + [q.grad for q in net.parameters()])
+    for a, b in zip(*outs):
+        assert b.dtype == torch.float32
+        scale = float(a.detach().abs().max())
+        assert float((a - b).detach().abs().max()) < 0.02 * scale and not torch.equal(a, b)
+    # relative to the gradient's norm: the weights' within 2 %; the input's within 10 % (it sums the high
+    # positional-encoding frequencies' terms, which cancel, so bf16's rounding shows most there)
+    for i, (a, b) in enumerate(zip(*grads)):
+        assert b.dtype == torch.float32
+        assert float((a - b).norm()) <= (0.10 if i == 0 else 0.02) * float(a.norm()), i
+    with pytest.raises(ValueError, match="precision"):
+        DeformNet(precision="fp16")
+
+
 def test_zeroed_network_equals_the_static_model():
     dyn = _tiny_scene(dynamic=True)  # heads are zero-initialised
     sta = DynamicScene(dyn.g, None, dyn.center, dyn.extent)
