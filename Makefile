@@ -63,6 +63,7 @@ BENCH_DEVICE ?= cpu
 bench: setup
 	$(PY) -m method.splat.bench --device $(BENCH_DEVICE) --out $(if $(filter cpu,$(BENCH_DEVICE)),bench/latest.json,bench/latest_$(BENCH_DEVICE).json)
 	$(if $(filter cpu,$(BENCH_DEVICE)),$(PY) -m method.splat.bench --backends --out bench/backends.json,)
+	$(if $(filter cpu,$(BENCH_DEVICE)),$(PY) -m method.model.bench --out bench/deform.json,)
 	$(PY) -m generator bench --out bench/generator.json
 
 clean-venv:

@@ -1,9 +1,11 @@
 """Benchmark entry point: bad input is one line with exit code 2; the scene generator is deterministic."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from method.splat.bench import make_scene, make_trace_queries
@@ -27,3 +29,13 @@ def test_bench_scene_is_deterministic_and_plausible():
     assert 0.5 < sigma_px < 2.0  # typical footprints of a few pixels
     o, d = make_trace_queries(means, quats, scales, 16, 8)
     assert o.shape == (128, 3) and torch.allclose(d.norm(dim=1), torch.ones(128))
+
+
+def test_deform_bench_times_both_precisions_on_the_profiles_network(tmp_path):
+    from method.model.bench import main
+
+    out = tmp_path / "deform.json"
+    assert main(["--out", str(out), "--profile", "ci", "--gaussians", "300", "--repeats", "2", "--threads", "1"]) == 0
+    res = json.loads(out.read_text())
+    assert set(res["seconds"]) == {"fp32", "bf16"} and res["architecture"]["mlp_width"] == 64  # ci's width
+    assert res["bf16_speedup"] == pytest.approx(res["seconds"]["fp32"] / res["seconds"]["bf16"])
