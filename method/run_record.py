@@ -25,6 +25,9 @@ from method.config import load_method_config
 IDENTITY_KEYS = ("scene_name", "light", "seed")
 # configuration sections that define a stage's run (a resume or the next stage must agree with the record)
 SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "data", "stage1", "stage2")}
+# settings added after runs were recorded whose profile value has since changed, with the value every run
+# before them trained with: a record without the key means this, whatever the profile says today
+PREDATING = {"model.mlp_precision": "fp32"}  # `small` went to bf16 in session 19
 
 
 def identity(scene_dir: Path, light: str, seed: int, device, static: bool, train_views: list[str] | None = None) -> dict:
@@ -86,6 +89,7 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
         if sec not in rec or sec not in cfg:
             continue
         a = _flat(rec[sec], sec) if isinstance(rec[sec], dict) else {sec: rec[sec]}
+        a = {**{k: v for k, v in PREDATING.items() if k.startswith(f"{sec}.")}, **a}
         b = _flat(cfg[sec], sec) if isinstance(cfg[sec], dict) else {sec: cfg[sec]}
         diffs += [f"{k}={a[k]!r} (this command: {b[k]!r})" for k in sorted(a.keys() & b.keys()) if a[k] != b[k]]
     if diffs:
@@ -101,8 +105,9 @@ BOOKKEEPING_KEYS = ("checkpoint_every", "log_every", "eval_every")
 def recorded_settings(rec: dict, stage: int = 2) -> dict:
     """The settings of a run's record (or of a resolved configuration) that decide what its stages up to
     ``stage`` train, flat (``stage1.lr_opacity``), bookkeeping keys left out. A key added to the settings
-    file after the run was recorded counts at its profile's value (a new setting's default keeps the old
-    behaviour), so adding one does not set old runs apart."""
+    file after the run was recorded counts at its :data:`PREDATING` value, else at its profile's value (a
+    new setting's default keeps the old behaviour), so adding one does not set old runs apart. A static run
+    (``run.static``) has no deformation network: the model section decides nothing there and is left out."""
     known: dict = {}
     try:
         known = load_method_config(str(rec.get("profile")), [])
@@ -114,10 +119,13 @@ def recorded_settings(rec: dict, stage: int = 2) -> dict:
             continue
         if isinstance(rec[sec], dict):
             flat.update(_flat(known.get(sec) or {}, sec))
+            flat.update({k: v for k, v in PREDATING.items() if k.startswith(f"{sec}.")})
             flat.update(_flat(rec[sec], sec))
         else:
             flat[sec] = rec[sec]
-    return {k: v for k, v in flat.items() if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS}
+    static = isinstance(rec.get("run"), dict) and rec["run"].get("static") is True
+    return {k: v for k, v in flat.items()
+            if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS and not (static and k.startswith("model."))}
 
 
 def settings_hash(run_dir: Path) -> str | None:
@@ -127,7 +135,10 @@ def settings_hash(run_dir: Path) -> str | None:
     rec = read_record(run_dir)
     if not rec:
         return None
-    return hashlib.sha256(json.dumps(recorded_settings(rec, 2), sort_keys=True).encode()).hexdigest()
+    # a setting at the value runs had before it existed is left out, so their hashes (stored in results)
+    # stay what they were
+    kept = {k: v for k, v in recorded_settings(rec, 2).items() if not (k in PREDATING and v == PREDATING[k])}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
 
 
 def write_record(run_dir: Path, cfg: dict, ident: dict) -> None:

@@ -219,3 +219,30 @@ def test_settings_hash_follows_the_training_settings_only(tmp_path):
     assert settings_hash(tmp_path / "older") == runs["base"] != settings_hash(tmp_path / "other_value")
     assert settings_hash(tmp_path / "none") is None
     assert cfg["stage1"]["lambda_normal"] != 0.5
+
+
+def test_a_record_from_before_mlp_precision_means_fp32_whatever_the_profile_says_now(tmp_path):
+    """`small` trains in bf16 since session 19; its earlier runs' records have no mlp_precision and were fp32:
+    their hash stays the fp32 one, a resume in bf16 is refused naming the key, and a static run's hash
+    ignores the model section (it has no network)."""
+    import yaml
+
+    from method.config import load_method_config
+    from method.run_record import check_settings, identity, settings_hash, write_record
+
+    small = load_method_config("small", [])
+    assert small["model"]["mlp_precision"] == "bf16"
+    for static in (False, True):
+        for name, prec in (("fp32", "fp32"), ("bf16", "bf16"), ("older", None)):
+            run = tmp_path / f"{name}_{static}"
+            c = load_method_config("small", [f"model.mlp_precision={prec or 'fp32'}"])
+            write_record(run, c, identity(tmp_path / "s", "city", 0, "cpu", static))
+            if prec is None:
+                rec = yaml.safe_load((run / "config.yaml").read_text())
+                del rec["model"]["mlp_precision"]
+                (run / "config.yaml").write_text(yaml.safe_dump(rec, sort_keys=False))
+        h = {n: settings_hash(tmp_path / f"{n}_{static}") for n in ("fp32", "bf16", "older")}
+        assert h["older"] == h["fp32"]
+        assert (h["bf16"] == h["fp32"]) == static  # the precision of a network a static run does not have
+    with pytest.raises(UserError, match=r"model.mlp_precision='fp32' \(this command: 'bf16'\)"):
+        check_settings(tmp_path / "older_False", small, 1, "resuming stage 1")
