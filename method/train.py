@@ -18,6 +18,7 @@ so on the CPU a resumed run equals an uninterrupted one (tests/test_training_loo
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from lumibench.io import atomic_write_json
 from method import run_record
 from method.checkpoints import checkpoint_paths, latest_checkpoint, save_checkpoint
 from method.data import SceneData, load_scene
-from method.devices import check_device, device_name, peak_memory_bytes, sync
+from method.devices import check_device, cpu_has_native_bf16, device_name, peak_memory_bytes, sync
 from method.splat.backend import resolve as resolve_backend
 from method.stage1 import Stage1
 from method.stage2 import Stage2
@@ -240,6 +241,11 @@ def train_stage1(scene_dir: str | Path, light: str, run_dir: str | Path, cfg: di
     dev = check_device(device)
     data = load_training_scene(scene_dir, light, cfg, dev)
     static = data.static if static is None else static
+    bf16 = cfg["model"]["mlp_precision"] == "bf16" and not static
+    if bf16 and dev.type == "cpu" and cpu_has_native_bf16() is False:
+        print("note: model.mlp_precision=bf16 on a CPU without AVX512-BF16 or AMX: bf16 is emulated and slower than "
+              "fp32 here; pass model.mlp_precision=fp32 (BENCHMARKS.md, 'The deformation network in bf16')",
+              file=sys.stderr)
     stage = Stage1(data, cfg, static=static, device=dev)
     ident = run_record.identity(Path(scene_dir), light, seed, dev, static, train_views=kept_views(data, cfg))
     return run_stage(stage, Path(run_dir), ident, cfg, seed=seed, resume=resume, progress=progress,

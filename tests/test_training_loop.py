@@ -246,3 +246,13 @@ def test_a_record_from_before_mlp_precision_means_fp32_whatever_the_profile_says
         assert (h["bf16"] == h["fp32"]) == static  # the precision of a network a static run does not have
     with pytest.raises(UserError, match=r"model.mlp_precision='fp32' \(this command: 'bf16'\)"):
         check_settings(tmp_path / "older_False", small, 1, "resuming stage 1")
+
+
+def test_native_bf16_is_read_from_the_cpu_flags(tmp_path):
+    from method.devices import cpu_has_native_bf16
+
+    for flags, want in (("fpu avx512f avx512_bf16 sse", True), ("fpu amx_bf16 amx_tile", True),
+                        ("fpu avx2 avx512f avx512bw", False)):
+        (tmp_path / "cpuinfo").write_text(f"processor\t: 0\nflags\t\t: {flags}\n")
+        assert cpu_has_native_bf16(str(tmp_path / "cpuinfo")) is want
+    assert cpu_has_native_bf16(str(tmp_path / "absent")) is None
