@@ -174,8 +174,9 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
 def share_stage1(source: str | Path, run_dir: str | Path, cfg: dict, *, scene: str, light: str, seed: int) -> bool:
     """Give ``run_dir`` the finished stage 1 of ``source`` when that run trained exactly this stage 1: the same
     scene, light, seed, dynamic capture and every stage-1 setting (``cfg``'s profile, model, data, stage1
-    sections, bookkeeping aside, a key the record predates at its profile's value). Its checkpoint is linked (copied across file systems), its log, renders,
-    timings and metrics copied, and the record names the source (``run.stage1_shared_from``), so an ablation
+    sections as :func:`run_record.recorded_settings` reads them). Its checkpoint is linked (copied across file
+    systems), its log, renders, timings and metrics copied, and the record names the source
+    (``run.stage1_shared_from``), so an ablation
     that differs from its source only after stage 1 (``wo_stage2``) compares the very same stage 1 and does
     not pay for it twice. False, with nothing written, when the source is unfinished or differs in anything."""
     import os
