@@ -7,6 +7,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -256,3 +257,14 @@ def test_native_bf16_is_read_from_the_cpu_flags(tmp_path):
         (tmp_path / "cpuinfo").write_text(f"processor\t: 0\nflags\t\t: {flags}\n")
         assert cpu_has_native_bf16(str(tmp_path / "cpuinfo")) is want
     assert cpu_has_native_bf16(str(tmp_path / "absent")) is None
+
+
+def test_a_published_records_hash_stays_what_its_results_store(tmp_path):
+    """The record of a published `small` run (results/small: LumiMotion, spheres, city, seed 0, session 18)
+    hashes to the value its results store. A setting added since must keep it: list the key in
+    run_record.PREDATING with the behaviour runs had before it existed, or every stored result reads as
+    another setting than the runs trained after it."""
+    from method.run_record import settings_hash
+
+    shutil.copyfile(Path(__file__).parent / "fixtures" / "record_small_lumimotion_s18.yaml", tmp_path / "config.yaml")
+    assert settings_hash(tmp_path) == "658e03fc9adca8b67c3596c91a6be671d5800540fc59a90511010c67e3b16c65"
