@@ -25,8 +25,10 @@ from method.config import load_method_config
 IDENTITY_KEYS = ("scene_name", "light", "seed")
 # configuration sections that define a stage's run (a resume or the next stage must agree with the record)
 SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "data", "stage1", "stage2")}
-# settings added after runs were recorded whose profile value has since changed, with the value every run
-# before them trained with: a record without the key means this, whatever the profile says today
+# settings added after runs were recorded, with the behaviour every run before them had: a record without the
+# key means this, whatever the profile says today, and a run at this value hashes as if the key did not exist
+# (so results stored before it keep their settings hash; tests/test_training_loop.py holds one to it). Add
+# every new key here.
 PREDATING = {"model.mlp_precision": "fp32"}  # `small` went to bf16 in session 19
 
 
