@@ -87,8 +87,9 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
     if not rec:
         return
     diffs = []
+    static = isinstance(rec.get("run"), dict) and rec["run"].get("static") is True
     for sec in SECTIONS[stage]:
-        if sec not in rec or sec not in cfg:
+        if sec not in rec or sec not in cfg or (static and sec == "model"):  # a static run has no network
             continue
         a = _flat(rec[sec], sec) if isinstance(rec[sec], dict) else {sec: rec[sec]}
         a = {**{k: v for k, v in PREDATING.items() if k.startswith(f"{sec}.")}, **a}

@@ -247,6 +247,7 @@ def test_a_record_from_before_mlp_precision_means_fp32_whatever_the_profile_says
         assert (h["bf16"] == h["fp32"]) == static  # the precision of a network a static run does not have
     with pytest.raises(UserError, match=r"model.mlp_precision='fp32' \(this command: 'bf16'\)"):
         check_settings(tmp_path / "older_False", small, 1, "resuming stage 1")
+    check_settings(tmp_path / "older_True", small, 1, "resuming stage 1")  # static: no network, nothing differs
 
 
 def test_native_bf16_is_read_from_the_cpu_flags(tmp_path):
