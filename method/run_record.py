@@ -80,6 +80,11 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _is_static(rec: dict) -> bool:
+    """Whether a record is of the static pipeline's run (no deformation network)."""
+    return isinstance(rec.get("run"), dict) and rec["run"].get("static") is True
+
+
 def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
     """Refuse ``what`` when a setting of the stage's sections differs from the run's record (keys that
     only one side knows are not compared: a record from an older version of the settings file)."""
@@ -87,7 +92,7 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
     if not rec:
         return
     diffs = []
-    static = isinstance(rec.get("run"), dict) and rec["run"].get("static") is True
+    static = _is_static(rec)
     for sec in SECTIONS[stage]:
         if sec not in rec or sec not in cfg or (static and sec == "model"):  # a static run has no network
             continue
@@ -126,7 +131,7 @@ def recorded_settings(rec: dict, stage: int = 2) -> dict:
             flat.update(_flat(rec[sec], sec))
         else:
             flat[sec] = rec[sec]
-    static = isinstance(rec.get("run"), dict) and rec["run"].get("static") is True
+    static = _is_static(rec)
     return {k: v for k, v in flat.items()
             if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS and not (static and k.startswith("model."))}
 
