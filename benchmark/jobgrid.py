@@ -499,3 +499,18 @@ def iter_results(jobs: Iterable[dict]) -> Iterator[Path]:
     for job in jobs:
         for _, _, p in job_results(job):
             yield Path(p)
+
+
+def stored_results(out: Path) -> list[Path]:
+    """Every result file stored under ``out``/runs (any method, scene, configuration, seed, protocol), sorted.
+
+    Why the tables are built from these and not from the grid that just ran: results/<profile>/ is the
+    profile's published record, filled over several grids and sessions (one seed today, another light
+    tomorrow). Building the tables from the last grid's jobs alone would overwrite the published tables
+    with a subset of them. A stored result a user no longer wants is removed by deleting its file."""
+    from .protocol import PROTOCOLS
+    from .results import result_filename
+
+    names = {result_filename(p) for p in PROTOCOLS}
+    root = Path(out) / "runs"
+    return sorted(p for p in root.rglob("results*.json") if p.name in names and p.is_file()) if root.is_dir() else []

@@ -250,3 +250,20 @@ def test_grid_renders_its_light_files_with_the_named_lights(tmp_path, monkeypatc
     report = run_grid(load_benchmark_config(grid), _paths(tmp_path, tmp_path / "data"), quiet=True)
     assert calls == [["city", "sunrise", f"{tmp_path}/attic.hdr"]]
     assert [o["status"] for _, o in report.rendered + report.executed] == ["ok", "ok"]
+
+
+def test_eval_tables_keep_the_results_of_earlier_grids(tmp_path, capsys):
+    """results/<profile>/ is filled by several grids (a seed today, a light tomorrow): a grid's eval writes the
+    tables from every stored result of the profile, so a later grid on a subset never drops published rows."""
+    from benchmark.__main__ import main
+
+    data = dataset_root(tmp_path, scenes=("fa", "fb"), res=24, n_test=2, n_train=2)
+    common = ["--data", str(data), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"),
+              "--no-grids"]
+    assert main(["eval", "--config", str(_grid(tmp_path, ["fa"], ["mean_albedo"])), *common]) == 0
+    assert main(["eval", "--config", str(_grid(tmp_path, ["fb"], ["lit_as_albedo"])), *common]) == 0
+    out = capsys.readouterr().out
+    assert "tables from all 2 result files" in out and "(1 of them from this grid)" in out, out
+    rows = (tmp_path / "results" / "ci" / "table.csv").read_text().splitlines()
+    for method in ("mean_albedo", "lit_as_albedo"):  # one scene each, both in the table
+        assert any(line.startswith(f"lumimotion,city->sunrise,{method},1,0,") for line in rows), (method, rows)

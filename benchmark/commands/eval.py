@@ -11,8 +11,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Render missing scenes, run and score every (method, scene, configuration, "
                                    "seed) job not yet finished, each under every protocol of the grid from the same "
                                    "predictions, then write RESULTS/PROFILE/: per-run results.json (lumimotion) and "
-                                   "results_<protocol>.json (others), table.md/.tex/.csv (one table per protocol), "
-                                   "charts and report.html.")
+                                   "results_<protocol>.json (others), then table.md/.tex/.csv (one table per protocol), "
+                                   "charts and report.html from every result stored under RESULTS/PROFILE/runs "
+                                   "(earlier grids' too: delete a result file to drop it).")
     p.add_argument("--profile", default="ci", help="grid configs/benchmark/<profile>.yaml (default ci)")
     p.add_argument("--config", default=None, help="a grid YAML to use instead of the profile's")
     p.add_argument("--data", default="data", help="dataset root (scenes at DATA/PROFILE/<scene>)")
@@ -40,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
 
     from baselines_adapters.base import is_not_run_message
     from benchmark.config import load_benchmark_config
-    from benchmark.jobgrid import Paths, failure_summary, iter_results, job_label, method_jobs, run_grid
+    from benchmark.jobgrid import Paths, failure_summary, iter_results, job_label, method_jobs, run_grid, stored_results
     from benchmark.outputs import build_outputs
     from lumibench.errors import UserError
 
@@ -58,7 +59,13 @@ def run(args: argparse.Namespace) -> int:
     report = run_grid(config, paths, args.executor, args.jobs, render=not args.no_render)
     for job, outcome in report.failed:
         print(f"failed: {job_label(job)}: {outcome.get('error')}")
-    written = build_outputs(iter_results(method_jobs(config, paths)), paths.out,
+    # the tables show every result stored for the profile, this grid's and earlier grids' (stored_results)
+    stored = stored_results(paths.out)
+    ours = {p.resolve() for p in iter_results(method_jobs(config, paths)) if p.is_file()}
+    if len(stored) > len(ours):
+        print(f"tables from all {len(stored)} result files under {paths.out / 'runs'} "
+              f"({len(ours)} of them from this grid)")
+    written = build_outputs(stored, paths.out,
                             title=f"LumiBench results: profile {config.profile}", grids=not args.no_grids,
                             protocols=config.protocols)
     n_done = len(report.executed)
