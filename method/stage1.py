@@ -144,18 +144,54 @@ def carve(points: torch.Tensor, data: SceneData, fraction: float = 0.5) -> torch
     inside = torch.zeros(points.shape[0])
     seen = torch.zeros(points.shape[0])
     for v in data.train:
-        cam = v.camera
-        p = points.to(cam.w2c) @ cam.w2c[:3, :3].T + cam.w2c[:3, 3]
-        z = p[:, 2]
-        x = cam.focal * p[:, 0] / z.clamp_min(1e-6) + cam.cx
-        y = cam.focal * p[:, 1] / z.clamp_min(1e-6) + cam.cy
-        ok = (z > 1e-3) & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
-        xi = x.clamp(0, cam.width - 1).long()
-        yi = y.clamp(0, cam.height - 1).long()
+        xi, yi, ok = pixel_of(points, v.camera)
         a = v.alpha[yi.to(v.alpha.device), xi.to(v.alpha.device)].cpu()
         seen += ok.cpu().float()
         inside += (ok.cpu() & (a > 0.5)).float()
     return (seen > 0) & (inside >= fraction * seen.clamp_min(1))
+
+
+def pixel_of(points: torch.Tensor, cam: Camera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pixel (column, row; clamped into the image) each point's centre projects to, and whether it lands
+    in the image in front of the camera."""
+    p = points.to(cam.w2c) @ cam.w2c[:3, :3].T + cam.w2c[:3, 3]
+    z = p[:, 2]
+    x = cam.focal * p[:, 0] / z.clamp_min(1e-6) + cam.cx
+    y = cam.focal * p[:, 1] / z.clamp_min(1e-6) + cam.cy
+    ok = (z > 1e-3) & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+    return x.clamp(0, cam.width - 1).long(), y.clamp(0, cam.height - 1).long(), ok
+
+
+@torch.no_grad()
+def on_moving_objects(scene: DynamicScene, views) -> torch.Tensor | None:
+    """Per Gaussian: is its centre, carried by the network to each training view's time (P = 1, as in the
+    warm-up), on the generator's moving-object mask in most of the views that see it? None without masks.
+
+    For the log only (the P split never sees it): it tells a run whose moving objects came out static
+    whether the warm-up had put Gaussians on them at all, or the split marked the ones it had as static
+    (BENCHMARKS.md, "The P split at the warm-up's end")."""
+    if scene.net is None or not views or any(v.dynamic_mask is None for v in views):
+        return None
+    g = scene.g
+    x = (g.means - scene.center.to(g.means)) / scene.extent
+    on = torch.zeros(len(g), device=g.means.device)
+    seen = torch.zeros(len(g), device=g.means.device)
+    for v in views:
+        d_mu, _, _ = scene.net(x, float(v.time))
+        xi, yi, ok = pixel_of(g.means + d_mu.to(g.means), v.camera)
+        m = v.dynamic_mask.to(g.means.device)
+        on += (ok & (m[yi.to(m.device), xi.to(m.device)] > 0.5)).float()
+        seen += ok.float()
+    return (seen > 0) & (on > 0.5 * seen)
+
+
+def split_check(moving: torch.Tensor, static: torch.Tensor) -> dict:
+    """How the P split treated the Gaussians on the moving objects (``moving``) and the rest, given which it
+    marked static: counts and the share of each group it put on the right side."""
+    n_mov = int(moving.sum())
+    return {"moving_gaussians": n_mov,
+            "moving_marked_dynamic": float((moving & ~static).sum()) / max(n_mov, 1),
+            "rest_marked_static": float((~moving & static).sum()) / max(int((~moving).sum()), 1)}
 
 
 def c2f_factor(iteration: int, levels: int, until: int) -> int:
@@ -336,8 +372,11 @@ class Stage1:
                 grp["lr"] = mlp_lr(it, total, s)
         view = self._view(it, gen)
         if s["p_from_motion"] and it == s["warmup"] + 1 and not scene.static and scene.separation:
+            moving = on_moving_objects(scene, self.data.train)  # before the split bakes the offsets in
             info = assign_p_from_motion(scene, self.train_times, None, s["p_from_motion_logit"],
                                         s["p_motion_relative"])
+            if moving is not None:
+                info["check"] = split_check(moving, scene.g.t["p_logit"] < 0)
             self.gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())
             log({"iteration": it, "p_from_motion": info})
         warm = it <= s["warmup"]

@@ -286,6 +286,46 @@ def test_p_from_motion_relative_measures_motion_in_each_gaussians_size():
     assert torch.equal(sc2.g.t["p_logit"].detach() > 0, moving)
 
 
+
+class _MirrorNet(torch.nn.Module):
+    """Before time 0.5, carries every Gaussian with x > 0 to -x; from 0.5 on, moves nothing."""
+
+    def forward(self, x, t):
+        d_mu = torch.zeros_like(x)
+        if t < 0.5:
+            d_mu[:, 0] = -2 * x[:, 0] * (x[:, 0] > 0).to(x.dtype)
+        return d_mu, torch.zeros(x.shape[0], 4, dtype=x.dtype), torch.zeros_like(x)
+
+
+@pytest.mark.parametrize("early,late", [(3, 2), (2, 3)])
+def test_on_moving_objects_follows_the_network_and_takes_the_majority_of_views(early, late):
+    """The log's check of the P split: a Gaussian is on the moving objects when its centre, carried to each
+    view's time, lands on the view's mask in most views. Mask: the image's right half (world x > 0 for a
+    camera on the -y axis). Gaussians with x > 0 sit on it only at the late times, so they count as on the
+    moving objects exactly when the late views are the majority; those with x < 0 never do."""
+    from types import SimpleNamespace
+
+    from method.stage1 import on_moving_objects, split_check
+
+    sc = _tiny_scene(n=60)
+    sc.net = _MirrorNet()
+    cam = Camera.look_at((0, -3, 0), (0, 0, 0), 32, 32, dtype=torch.float64)
+    mask = torch.zeros(32, 32)
+    mask[:, 16:] = 1
+    views = [SimpleNamespace(camera=cam, time=0.1 * k, dynamic_mask=mask) for k in range(early)]
+    views += [SimpleNamespace(camera=cam, time=0.6 + 0.1 * k, dynamic_mask=mask) for k in range(late)]
+    right = sc.g.means[:, 0].detach() > 0
+    assert 0 < int(right.sum()) < 60
+    moving = on_moving_objects(sc, views)
+    assert torch.equal(moving, right if late > early else torch.zeros_like(right))
+    views[0].dynamic_mask = None
+    assert on_moving_objects(sc, views) is None  # no masks, no check
+    check = split_check(right, static=~right)
+    assert check == {"moving_gaussians": int(right.sum()), "moving_marked_dynamic": 1.0, "rest_marked_static": 1.0}
+    check = split_check(right, static=torch.ones_like(right))
+    assert check["moving_marked_dynamic"] == 0.0 and check["rest_marked_static"] == 1.0
+
+
 # ------------------------------------------------------------------------------------------- loader
 
 def _write_rgba(path: Path, rgb, alpha):
