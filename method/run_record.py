@@ -29,7 +29,8 @@ SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "
 # key means this, whatever the profile says today, and a run at this value hashes as if the key did not exist
 # (so results stored before it keep their settings hash; tests/test_training_loop.py holds one to it). Add
 # every new key here.
-PREDATING = {"model.mlp_precision": "fp32"}  # session 19
+PREDATING = {"model.mlp_precision": "fp32",  # session 19
+             "stage1.p_motion_floor": 0.0}  # session 20
 
 
 def identity(scene_dir: Path, light: str, seed: int, device, static: bool, train_views: list[str] | None = None) -> dict:

@@ -61,7 +61,7 @@ def motion_rms(scene: DynamicScene, times: list[float]) -> tuple[torch.Tensor, t
 
 @torch.no_grad()
 def assign_p_from_motion(scene: DynamicScene, times: list[float], threshold: float | None, logit: float,
-                         relative: bool = False) -> dict:
+                         relative: bool = False, floor: float = 0.0) -> dict:
     """Start the separation from what the warm-up learned: a Gaussian whose offset barely changes over the
     training times is static, one that moves is dynamic.
 
@@ -83,6 +83,11 @@ def assign_p_from_motion(scene: DynamicScene, times: list[float], threshold: flo
     a part that moves is carried several times its own size; a large wall splat dragged along by the
     network's smooth field beside a moving figure wobbles more in absolute terms than the figure's small
     splats do (BENCHMARKS.md, session 11).
+
+    ``floor``: Otsu sees motions below it as this value (``threshold`` None only). Why: the split is
+    between two groups of the log motion, and a tail of nearly motionless Gaussians reaches 1e-7 and
+    below; far out in log space, 3 % of them became Otsu's lower group once, and every other Gaussian was
+    marked dynamic (BENCHMARKS.md, "The P split at the warm-up's end").
     Returns the threshold, the share marked static and the median motion of each group."""
     g = scene.g
     if scene.net is None or len(g) < 2:
@@ -91,7 +96,7 @@ def assign_p_from_motion(scene: DynamicScene, times: list[float], threshold: flo
     if relative:
         motion = motion * scene.extent / g.scales.max(-1).values.clamp_min(1e-12)
     if threshold is None:
-        threshold = math.exp(otsu_threshold(motion.clamp_min(1e-12).log()))
+        threshold = math.exp(otsu_threshold(motion.clamp_min(max(floor, 1e-12)).log()))
     static = motion < threshold
     g.t["means"][static] += mean_mu[static]
     g.t["quats"][static] += mean_rot[static]
@@ -374,7 +379,7 @@ class Stage1:
         if s["p_from_motion"] and it == s["warmup"] + 1 and not scene.static and scene.separation:
             moving = on_moving_objects(scene, self.data.train)  # before the split bakes the offsets in
             info = assign_p_from_motion(scene, self.train_times, None, s["p_from_motion_logit"],
-                                        s["p_motion_relative"])
+                                        s["p_motion_relative"], s["p_motion_floor"])
             if moving is not None:
                 info["check"] = split_check(moving, scene.g.t["p_logit"] < 0)
             self.gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())

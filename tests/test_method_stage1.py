@@ -287,6 +287,35 @@ def test_p_from_motion_relative_measures_motion_in_each_gaussians_size():
 
 
 
+class _ThreeSpeedNet(torch.nn.Module):
+    """x < -0.4: a nearly motionless tail (amplitude 1e-9); x > 0.2: moving (0.2); between: a static wobble (0.01)."""
+
+    def forward(self, x, t):
+        amp = torch.where(x[:, 0] < -0.4, 1e-9, torch.where(x[:, 0] > 0.2, 0.2, 0.01)).to(x.dtype)
+        d_mu = torch.zeros_like(x)
+        d_mu[:, 0] = amp * math.sin(2 * math.pi * t)
+        return d_mu, torch.zeros(x.shape[0], 4, dtype=x.dtype), torch.zeros_like(x)
+
+
+def test_p_motion_floor_keeps_a_motionless_tail_out_of_the_split():
+    """Without a floor, Otsu on the log motion makes the far tail (1e-9) one group and marks the wobble dynamic
+    with the movers; with stage1.p_motion_floor at 1e-3 the tail joins the static side and only movers move."""
+    from method.stage1 import assign_p_from_motion
+
+    times = [k / 9 for k in range(10)]
+    sc = _tiny_scene(n=60)
+    x = sc.g.means[:, 0].detach()
+    tail, movers = x < -0.4, x > 0.2
+    assert int(tail.sum()) >= 3 and int(movers.sum()) >= 3 and int((~tail & ~movers).sum()) >= 3
+    sc.net = _ThreeSpeedNet()
+    assign_p_from_motion(sc, times, threshold=None, logit=2.0)
+    assert torch.equal(sc.g.t["p_logit"].detach() > 0, ~tail)
+    sc = _tiny_scene(n=60)
+    sc.net = _ThreeSpeedNet()
+    info = assign_p_from_motion(sc, times, threshold=None, logit=2.0, floor=1e-3)
+    assert torch.equal(sc.g.t["p_logit"].detach() > 0, movers), info
+
+
 class _MirrorNet(torch.nn.Module):
     """Before time 0.5, carries every Gaussian with x > 0 to -x; from 0.5 on, moves nothing."""
 
