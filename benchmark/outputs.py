@@ -12,7 +12,7 @@ from typing import Iterable, Sequence
 from lumibench.errors import UserError
 from lumibench.io import atomic_write_text
 
-from . import charts, tables, thesis
+from . import budget, charts, tables, thesis
 from .aggregate import load_results, protocol_tables, published_reference
 from .grids import image_grid
 from .report import write_report
@@ -46,6 +46,7 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
     written.update({k: v for k, v in thesis_paths.items() if k.endswith(".md")})
     if "thesis.png" in thesis_paths:
         chart_paths["thesis"] = thesis_paths["thesis.png"]
+    written.update(budget.write(primary, out, ptables[0].protocol))  # speed against accuracy, when variants ran
     grid_paths = []
     if grids:
         seen = set()

@@ -1,0 +1,76 @@
+"""benchmark/budget.py: a method's budget variants against each other, from result files."""
+from __future__ import annotations
+
+import pytest
+
+from benchmark import budget
+from benchmark.outputs import build_outputs
+from benchmark.results import write_result
+from benchmark_fakes import fake_result
+
+# variant: (training seconds, Gaussians, {scene: [relight PSNR per seed]})
+RUNS = {
+    "lumimotion": (100.0, 20000, {"a": [27.0], "b": [26.0]}),
+    "lumimotion@0.25": (25.0, 19000, {"a": [25.0], "b": [24.0]}),
+    "lumimotion@0.5": (50.0, 19500, {"a": [26.4, 26.8], "b": [26.0]}),     # two seeds on a (50 and 70 s)
+    "lumimotion@cap5000": (80.0, 5000, {"a": [26.0], "b": [26.1]}),        # 26.05: 0.45 dB under the largest
+    "lumimotion@cap10000": (90.0, 10000, {"a": [26.4], "b": [26.2]}),      # 26.3: within 0.3 dB of it
+}
+
+
+def _results():
+    rs = []
+    for method, (sec, gauss, scenes) in RUNS.items():
+        for scene, psnrs in scenes.items():
+            for seed, p in enumerate(psnrs):
+                rs.append(fake_result(method, scene, seed=seed, relight_psnr=p, seconds=sec + 20 * seed,
+                                      gaussians=gauss))
+    rs.append(fake_result("lumimotion", "c", relight_psnr=40.0, seconds=100.0, gaussians=20000))  # only the full
+    rs.append(fake_result("lumimotion@0.25", "a", seed=5, status="failed"))                       # ignored
+    rs.append(fake_result("lumimotion@frames0.25", "a", relight_psnr=10.0, seconds=1.0))         # data, not cost
+    rs.append(fake_result("static", "a", relight_psnr=30.0, seconds=1.0))                        # no variants
+    return rs
+
+
+def test_variants_are_compared_over_common_scenes_with_each_scene_weighted_alike():
+    (c,) = budget.compare(_results())
+    assert (c["family"], c["configuration"]) == ("lumimotion", ("city", "sunrise"))
+    assert c["scenes"] == ["a", "b"] and c["left_out"] == ["c"]
+    assert list(c["variants"]) == ["lumimotion", "lumimotion@0.25", "lumimotion@0.5", "lumimotion@cap10000",
+                                   "lumimotion@cap5000"]
+    v = c["variants"]
+    assert v["lumimotion"]["metrics"]["relight.psnr"] == pytest.approx(26.5)      # scene c is not averaged in
+    assert v["lumimotion@0.5"]["metrics"]["relight.psnr"] == pytest.approx(26.3)  # (26.6 + 26.0) / 2, not pooled
+    assert v["lumimotion@0.5"]["per_scene"] == pytest.approx({"a": 26.6, "b": 26.0})
+    assert v["lumimotion@0.5"]["runs"] == 3 and v["lumimotion"]["runs"] == 2
+    assert v["lumimotion@0.5"]["seconds"] == pytest.approx(55.0)                  # (60 + 50) / 2, not 170 / 3
+    assert v["lumimotion@0.25"]["seconds"] == pytest.approx(25.0)
+    assert v["lumimotion@cap5000"]["gaussians"] == pytest.approx(5000)
+
+
+def test_the_front_and_the_smallest_model_within_the_tolerance():
+    (c,) = budget.compare(_results())
+    # cap5000 (80 s, 26.05) and cap10000 (90 s, 26.3) are dominated by @0.5 (50 s, 26.3)
+    assert c["front"] == ["lumimotion@0.25", "lumimotion@0.5", "lumimotion"]
+    assert c["size"] == ("lumimotion", "lumimotion@cap10000")  # cap5000 is 0.45 dB under: outside 0.3 dB
+
+
+def test_pareto_variants_needs_a_strict_gain_and_skips_missing_values():
+    pts = {"a": (10.0, 20.0), "b": (10.0, 20.0), "c": (5.0, 19.0), "d": (None, 30.0), "e": (20.0, 20.0)}
+    assert budget.pareto_variants(pts) == ["c", "a", "b"]  # ties both stay; e is slower for the same quality
+
+
+def test_budget_md_is_written_by_build_outputs_only_when_variants_ran(tmp_path):
+    paths = []
+    for i, r in enumerate(_results()):
+        p = tmp_path / "runs" / f"{i}.json"
+        write_result(p, r)
+        paths.append(p)
+    written = build_outputs(paths, tmp_path / "out", grids=False, published=False)
+    text = written["budget.md"].read_text()
+    assert "## lumimotion, city → sunrise" in text and "left out, not run by every variant: c" in text
+    assert "- 25 s or up to 55 s: **lumimotion@0.25**" in text and "- 100 s or more: **lumimotion**" in text
+    assert "**lumimotion@cap10000** (10,000 Gaussians, 26.30 dB) is within 0.3 dB" in text
+    assert "frames" not in text and "static" not in text
+    plain = build_outputs(paths[-1:], tmp_path / "plain", grids=False, published=False)
+    assert "budget.md" not in plain and not (tmp_path / "plain" / "budget.md").exists()
