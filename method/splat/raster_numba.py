@@ -6,7 +6,9 @@ pairs), so each row's pixels are composited front to back as the row's list is w
 and no global sort. Per splat and row, the closed-form x-span of the support bounds the pixels tested
 (as _candidate_spans); each pixel then runs the exact alpha test, the T < 1e-4 stop and the
 accumulation of features, depth, distortion moments and the median. Rows are independent, so the
-forward is parallel over rows and writes each pixel once.
+forward is parallel over rows and writes each pixel once; rows are dealt to the threads round-robin, as in
+the backward (prange's equal blocks of rows gave one of two threads 1.5-1.9x the mean pairs on real training
+views, whose ground fills the lower half).
 
 The backward walks the same rows again and recomputes every pair (cheaper than storing them). Per
 pixel, the suffix sum the compositing gradient needs (sum over later pairs of g_w w) is the pixel's
@@ -124,44 +126,47 @@ def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, n
     med_id = np.full(npix, -1, np.int64)
     visible = np.zeros(r.shape[0], np.bool_)
     pairs = np.zeros(height, np.int64)
-    for y in prange(height):
-        yc = y + 0.5 - cy
+    nt = min(get_num_threads(), height)
+    for ti in prange(nt):  # rows dealt out round-robin: prange's equal halves of a view are not equal work
         done = np.zeros(width, np.bool_)
-        base = y * width
-        n_pairs = 0
-        for li in range(starts[y], starts[y + 1]):
-            s = ids[li]
-            j0, j1 = _span(r, s, kk, bounded, x0, x1, yc, cx, width)
-            for x in range(j0, j1 + 1):
-                if done[x]:
-                    continue
-                alpha, depth, use3, u, v, inv, dx, dy, gauss, unclamped = _pair(r, s, x + 0.5 - cx, yc)
-                if alpha < ALPHA_MIN or depth < near:
-                    continue
-                p = base + x
-                t = trans[p]
-                t_after = t * (1.0 - alpha)
-                if t_after < t_stop:
-                    done[x] = True
-                    continue
-                w = alpha * t
-                m = m_scale * (1.0 - m_near / max(depth, 1e-6))
-                dist[p] += w * (m * m * mom[p, 0] + mom[p, 2] - 2.0 * m * mom[p, 1])
-                mom[p, 0] += w
-                mom[p, 1] += w * m
-                mom[p, 2] += w * m * m
-                for c in range(K):
-                    feat[p, c] += w * attrs[s, c]
-                dsum[p] += w * depth
-                if t > 0.5:
-                    med[p] = depth
-                    med_id[p] = s
-                trans[p] = t_after
-                visible[s] = True
-                n_pairs += 1
-        pairs[y] = n_pairs
-        for x in range(width):
-            log_t[base + x] = math.log(trans[base + x])
+        for y in range(ti, height, nt):
+            yc = y + 0.5 - cy
+            done[:] = False
+            base = y * width
+            n_pairs = 0
+            for li in range(starts[y], starts[y + 1]):
+                s = ids[li]
+                j0, j1 = _span(r, s, kk, bounded, x0, x1, yc, cx, width)
+                for x in range(j0, j1 + 1):
+                    if done[x]:
+                        continue
+                    alpha, depth, use3, u, v, inv, dx, dy, gauss, unclamped = _pair(r, s, x + 0.5 - cx, yc)
+                    if alpha < ALPHA_MIN or depth < near:
+                        continue
+                    p = base + x
+                    t = trans[p]
+                    t_after = t * (1.0 - alpha)
+                    if t_after < t_stop:
+                        done[x] = True
+                        continue
+                    w = alpha * t
+                    m = m_scale * (1.0 - m_near / max(depth, 1e-6))
+                    dist[p] += w * (m * m * mom[p, 0] + mom[p, 2] - 2.0 * m * mom[p, 1])
+                    mom[p, 0] += w
+                    mom[p, 1] += w * m
+                    mom[p, 2] += w * m * m
+                    for c in range(K):
+                        feat[p, c] += w * attrs[s, c]
+                    dsum[p] += w * depth
+                    if t > 0.5:
+                        med[p] = depth
+                        med_id[p] = s
+                    trans[p] = t_after
+                    visible[s] = True
+                    n_pairs += 1
+            pairs[y] = n_pairs
+            for x in range(width):
+                log_t[base + x] = math.log(trans[base + x])
     return feat, dsum, dist, log_t, mom, med, med_id, visible, pairs
 
 
