@@ -64,7 +64,7 @@ def smallest_within(variants: dict[str, dict], tolerance: float = TOLERANCE_DB) 
 def compare(results: Sequence[dict]) -> list[dict]:
     """One entry per (method family, configuration) with at least two budget variants: {family,
     configuration, scenes (those every variant ran), left_out (scenes some variant lacks), variants: {name:
-    {runs, seconds, gaussians, metrics: {key: mean}, per_scene: {scene: relight PSNR}}}, front (names, fastest
+    {runs, seconds, gaussians, metrics: {key: mean}, per_scene: {scene: relight PSNR}}} fastest first, front (names, fastest
     first), size: (largest, smallest within the tolerance) or None}."""
     ok = [r for r in results if r["status"] == "ok" and is_budget_variant(r["method"])]
     out = []
@@ -93,6 +93,7 @@ def compare(results: Sequence[dict]) -> list[dict]:
                     "metrics": {k: over_scenes(lambda r, k=k: metric_value(r, k)) for k, _, _ in COLUMNS},
                     "per_scene": {s: _mean([metric_value(r, KEY) for r in rs if r["scene"] == s]) for s in common},
                 }
+            variants = dict(sorted(variants.items(), key=lambda kv: (kv[1]["seconds"] is None, kv[1]["seconds"] or 0.0)))
             front = pareto_variants({n: (v["seconds"], v["metrics"][KEY]) for n, v in variants.items()})
             out.append({"family": fam, "configuration": conf, "scenes": common, "left_out": left_out,
                         "variants": variants, "front": front, "size": smallest_within(variants)})
@@ -134,9 +135,9 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None) -> str:
             lines += ["", "At a time budget of:"]
             for i, n in enumerate(c["front"]):
                 v = c["variants"][n]
-                upto = (f"up to {_time(c['variants'][c['front'][i + 1]]['seconds'])}" if i + 1 < len(c["front"])
-                        else "more")
-                lines.append(f"- {_time(v['seconds'])} or {upto}: **{n}** (relight PSNR "
+                upto = (f" (under {_time(c['variants'][c['front'][i + 1]]['seconds'])})" if i + 1 < len(c["front"])
+                        else "")
+                lines.append(f"- from {_time(v['seconds'])}{upto}: **{n}** (relight PSNR "
                              f"{_num(v['metrics'][KEY], 2)} dB)")
         if c["size"]:
             largest, small = c["size"]

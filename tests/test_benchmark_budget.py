@@ -36,8 +36,8 @@ def test_variants_are_compared_over_common_scenes_with_each_scene_weighted_alike
     (c,) = budget.compare(_results())
     assert (c["family"], c["configuration"]) == ("lumimotion", ("city", "sunrise"))
     assert c["scenes"] == ["a", "b"] and c["left_out"] == ["c"]
-    assert list(c["variants"]) == ["lumimotion", "lumimotion@0.25", "lumimotion@0.5", "lumimotion@cap10000",
-                                   "lumimotion@cap5000"]
+    assert list(c["variants"]) == ["lumimotion@0.25", "lumimotion@0.5", "lumimotion@cap5000", "lumimotion@cap10000",
+                                   "lumimotion"]  # fastest first
     v = c["variants"]
     assert v["lumimotion"]["metrics"]["relight.psnr"] == pytest.approx(26.5)      # scene c is not averaged in
     assert v["lumimotion@0.5"]["metrics"]["relight.psnr"] == pytest.approx(26.3)  # (26.6 + 26.0) / 2, not pooled
@@ -69,7 +69,7 @@ def test_budget_md_is_written_by_build_outputs_only_when_variants_ran(tmp_path):
     written = build_outputs(paths, tmp_path / "out", grids=False, published=False)
     text = written["budget.md"].read_text()
     assert "## lumimotion, city → sunrise" in text and "left out, not run by every variant: c" in text
-    assert "- 25 s or up to 55 s: **lumimotion@0.25**" in text and "- 100 s or more: **lumimotion**" in text
+    assert "- from 25 s (under 55 s): **lumimotion@0.25**" in text and "- from 100 s: **lumimotion**" in text
     assert "**lumimotion@cap10000** (10,000 Gaussians, 26.30 dB) is within 0.3 dB" in text
     assert "frames" not in text and "static" not in text
     plain = build_outputs(paths[-1:], tmp_path / "plain", grids=False, published=False)
