@@ -31,6 +31,12 @@ SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "
 # every new key here.
 PREDATING = {"model.mlp_precision": "fp32",  # session 19
              "stage1.p_motion_floor": 0.0}  # session 20
+# stage-1 settings only the deformation network and the P split read (method/stage1.py: the split runs only
+# when the scene is not static, the network's optimiser and the dynamic loss terms only when it has one): a
+# static run neither compares nor hashes them, so a change to the split does not set its static runs apart
+DYNAMIC_ONLY = ("stage1.p_from_motion", "stage1.p_from_motion_logit", "stage1.p_motion_relative",
+                "stage1.p_motion_floor", "stage1.lr_mlp", "stage1.lr_mlp_final", "stage1.lr_p", "stage1.lambda_p",
+                "stage1.lambda_dc", "stage1.lambda_dmu")
 
 
 def identity(scene_dir: Path, light: str, seed: int, device, static: bool, train_views: list[str] | None = None) -> dict:
@@ -100,7 +106,8 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
         a = _flat(rec[sec], sec) if isinstance(rec[sec], dict) else {sec: rec[sec]}
         a = {**{k: v for k, v in PREDATING.items() if k.startswith(f"{sec}.")}, **a}
         b = _flat(cfg[sec], sec) if isinstance(cfg[sec], dict) else {sec: cfg[sec]}
-        diffs += [f"{k}={a[k]!r} (this command: {b[k]!r})" for k in sorted(a.keys() & b.keys()) if a[k] != b[k]]
+        diffs += [f"{k}={a[k]!r} (this command: {b[k]!r})" for k in sorted(a.keys() & b.keys())
+                  if a[k] != b[k] and not (static and k in DYNAMIC_ONLY)]
     if diffs:
         more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
         raise UserError(f"{what}: {run_dir} was trained with {'; '.join(diffs[:3])}{more}: pass the run's own "
@@ -116,7 +123,8 @@ def recorded_settings(rec: dict, stage: int = 2) -> dict:
     ``stage`` train, flat (``stage1.lr_opacity``), bookkeeping keys left out. A key added to the settings
     file after the run was recorded counts at its :data:`PREDATING` value, else at its profile's value (a
     new setting's default keeps the old behaviour), so adding one does not set old runs apart. A static run
-    (``run.static``) has no deformation network: the model section decides nothing there and is left out."""
+    (``run.static``) has no deformation network and no P split: the model section and the stage-1 keys of
+    :data:`DYNAMIC_ONLY` decide nothing there and are left out."""
     known: dict = {}
     try:
         known = load_method_config(str(rec.get("profile")), [])
@@ -134,7 +142,8 @@ def recorded_settings(rec: dict, stage: int = 2) -> dict:
             flat[sec] = rec[sec]
     static = _is_static(rec)
     return {k: v for k, v in flat.items()
-            if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS and not (static and k.startswith("model."))}
+            if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS
+            and not (static and (k.startswith("model.") or k in DYNAMIC_ONLY))}
 
 
 def settings_hash(run_dir: Path) -> str | None:

@@ -268,3 +268,41 @@ def test_a_published_records_hash_stays_what_its_results_store(tmp_path):
 
     shutil.copyfile(Path(__file__).parent / "fixtures" / "record_small_lumimotion_s18.yaml", tmp_path / "config.yaml")
     assert settings_hash(tmp_path) == "658e03fc9adca8b67c3596c91a6be671d5800540fc59a90511010c67e3b16c65"
+
+
+def test_a_static_run_neither_hashes_nor_compares_the_p_split_settings(tmp_path):
+    """The static pipeline has no network and no P split: a static run recorded before the P floor existed
+    hashes like one recorded with it and resumes under it, while a dynamic run is set apart and refused."""
+    import yaml
+
+    from method.config import load_method_config
+    from method.run_record import DYNAMIC_ONLY, check_settings, identity, settings_hash, write_record
+
+    now = load_method_config("small", [])
+    assert now["stage1"]["p_motion_floor"] > 0 and now["stage1"]["lr_mlp"] != 8.0e-4
+    for static in (False, True):
+        for name, edit in (("now", None), ("older", "p_motion_floor"), ("other_lr", "lr_mlp")):
+            run = tmp_path / f"{name}_{static}"
+            write_record(run, now, identity(tmp_path / "s", "city", 0, "cpu", static))
+            if edit:
+                rec = yaml.safe_load((run / "config.yaml").read_text())
+                if edit == "p_motion_floor":
+                    del rec["stage1"]["p_motion_floor"]  # recorded before the floor: 0 (run_record.PREDATING)
+                else:
+                    rec["stage1"]["lr_mlp"] = 8.0e-4
+                (run / "config.yaml").write_text(yaml.safe_dump(rec, sort_keys=False))
+        h = {n: settings_hash(tmp_path / f"{n}_{static}") for n in ("now", "older", "other_lr")}
+        assert (h["older"] == h["now"] == h["other_lr"]) == static
+        if static:
+            check_settings(tmp_path / "older_True", now, 1, "resuming stage 1")
+            check_settings(tmp_path / "other_lr_True", now, 2, "stage 2")
+        else:
+            with pytest.raises(UserError, match=r"stage1.p_motion_floor=0.0 \(this command: 0.1\)"):
+                check_settings(tmp_path / "older_False", now, 1, "resuming stage 1")
+            with pytest.raises(UserError, match=r"stage1.lr_mlp"):
+                check_settings(tmp_path / "other_lr_False", now, 2, "stage 2")
+    # a setting the static pipeline reads is still compared
+    run = tmp_path / "opacity_True"
+    write_record(run, load_method_config("small", ["stage1.lr_opacity=0.5"]), identity(tmp_path / "s", "city", 0, "cpu", True))
+    assert settings_hash(run) != settings_hash(tmp_path / "now_True")
+    assert "stage1.lr_opacity" not in DYNAMIC_ONLY
