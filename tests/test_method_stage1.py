@@ -183,6 +183,38 @@ def test_bf16_trunk_follows_the_fp32_network_and_keeps_fp32_outputs():
         DeformNet(precision="fp16")
 
 
+def test_the_trunk_equals_the_mlp_on_the_concatenated_position_and_time_features():
+    """The trunk takes the time features' share of the first and the skip layer once per call: the same
+    network as the textbook one, every layer on [enc(mu), timenet(enc(t))] (and the skip's [h, that]),
+    in values and in the gradients of the positions and of every weight."""
+    from method.model.deform import positional_encoding
+
+    torch.manual_seed(5)
+    net = DeformNet(4, 32, 2, 6, 6, 16, 10).double()
+    for q in net.parameters():
+        torch.nn.init.normal_(q, std=0.3)
+    x = (torch.rand(200, 3, dtype=torch.float64) * 2 - 1)
+
+    def textbook(xi, t):
+        tt = torch.full((1, 1), t, dtype=xi.dtype)
+        inp = torch.cat([positional_encoding(xi, 6), net.time_net(positional_encoding(tt, 6)).expand(len(xi), -1)], -1)
+        h = inp
+        for i, layer in enumerate(net.layers):
+            h = torch.relu(layer(torch.cat([h, inp], -1) if i == 2 else h))
+        return net.heads(h)
+
+    res = []
+    for f in (textbook, net):
+        xi = x.clone().requires_grad_()
+        out = f(xi, 0.63)
+        net.zero_grad()
+        sum((o * (k + 1)).sum() for k, o in enumerate(out)).backward()
+        res.append(([o.detach() for o in out], [xi.grad] + [q.grad.clone() for q in net.parameters()]))
+    for a, b in zip(res[0][0] + res[0][1], res[1][0] + res[1][1]):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
+    assert float(res[0][0][0].abs().max()) > 0.1  # the heads say something
+
+
 def test_zeroed_network_equals_the_static_model():
     dyn = _tiny_scene(dynamic=True)  # heads are zero-initialised
     sta = DynamicScene(dyn.g, None, dyn.center, dyn.extent)
