@@ -10,6 +10,7 @@ main = build_main(
         "metrics": "benchmark.commands.metrics",
         "score": "benchmark.commands.score",
         "eval": "benchmark.commands.eval",
+        "check-report": "benchmark.commands.check_report",
     },
 )
 

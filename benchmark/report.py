@@ -17,7 +17,7 @@ from .tables import (DASH, _cell, _cell_text, _columns, _configurations, _method
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
 table{border-collapse:collapse;font-size:13px;margin-bottom:18px}
-th,td{border:1px solid #ccc;padding:3px 7px;text-align:right}
+th,td{border:1px solid #ccc;padding:3px 7px;text-align:right} td{white-space:nowrap}
 th{background:#f0f0f0} td:first-child,th:first-child{text-align:left}
 td.best{font-weight:bold;background:#e8f5e9} tr.conf td{background:#fafafa;font-weight:bold;text-align:center}
 .fail{color:#b00} img{max-width:100%;border:1px solid #ddd;margin:6px 0}

@@ -48,3 +48,12 @@ def test_eval_on_ci_dataset(ci_scene, tmp_path):
     html = (out / "report.html").read_text()
     assert "Published numbers" in html and "<i>IRGS (published, on the paper&#x27;s dataset)</i>" in html
     assert "pareto.png" in html and "lit_as_albedo" in html and len(list((out / "grids").glob("*.png"))) == 3
+    # as a browser shows it (where Chromium is installed): every image loads, no console error, and the
+    # screenshot stays in test-artifacts/ for a person to look at
+    from benchmark.browser_check import check_page, find_browser
+
+    if find_browser() is not None:
+        seen = check_page(out / "report.html", screenshot=REPO / "test-artifacts" / "report_ci.png")
+        assert seen.images and not seen.broken_images, seen.broken_images
+        assert not seen.console_errors, seen.console_errors
+        assert len(seen.images) == html.count("<img ") and seen.screenshot.stat().st_size > 10_000
