@@ -184,9 +184,10 @@ def test_bf16_trunk_follows_the_fp32_network_and_keeps_fp32_outputs():
 
 
 def test_the_trunk_equals_the_mlp_on_the_concatenated_position_and_time_features():
-    """The trunk takes the time features' share of the first and the skip layer once per call: the same
-    network as the textbook one, every layer on [enc(mu), timenet(enc(t))] (and the skip's [h, that]),
-    in values and in the gradients of the positions and of every weight."""
+    """The trunk takes the time features' share of the first and the skip layer once per call, and the heads
+    are one product: the same network as the textbook one, every layer on [enc(mu), timenet(enc(t))] (and
+    the skip's [h, that]), each head its own layer, in values and in the gradients of the positions and of
+    every weight."""
     from method.model.deform import positional_encoding
 
     torch.manual_seed(5)
@@ -201,7 +202,7 @@ def test_the_trunk_equals_the_mlp_on_the_concatenated_position_and_time_features
         h = inp
         for i, layer in enumerate(net.layers):
             h = torch.relu(layer(torch.cat([h, inp], -1) if i == 2 else h))
-        return net.heads(h)
+        return net.d_mu(h), net.d_rot(h), torch.clamp_max(net.d_col(h), 1.0)  # each head its own product
 
     res = []
     for f in (textbook, net):

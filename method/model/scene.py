@@ -83,9 +83,9 @@ class DynamicScene:
             if key not in trunk_cache:
                 with torch.no_grad():
                     h = self.net.trunk(x, t)
-                    trunk_cache[key] = (h, self.net.d_mu(h), self.net.d_rot(h))
+                    trunk_cache[key] = (h, *self.net.heads(h)[:2])
             h, d_mu, d_rot = trunk_cache[key]
-            d_col = torch.clamp_max(self.net.d_col(h), 1.0)
+            d_col = self.net.heads(h)[2]  # the heads' one product, as uncached (the frozen ones cost nothing)
         if not self.delta_colour:
             d_col = torch.zeros_like(d_col)
         pc = p[:, None]
