@@ -24,7 +24,7 @@ import math
 import numpy as np
 import numba
 import torch
-from numba import get_num_threads, njit, prange
+from numba import njit, prange
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -111,9 +111,11 @@ def _pair(r, s, xc, yc):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop):
+def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop,
+            threads):
     """Per pixel (H W): features (K), sum w z, distortion, log T, W, M1, M2, median depth and splat.
-    Per splat: visible. Per row: pairs composited."""
+    Per splat: visible. Per row: pairs composited. ``threads``: numba's thread count, passed in (reading it
+    here would make the kernel uncacheable: a ctypes global)."""
     npix = width * height
     K = attrs.shape[1]
     feat = np.zeros((npix, K))
@@ -126,7 +128,7 @@ def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, n
     med_id = np.full(npix, -1, np.int64)
     visible = np.zeros(r.shape[0], np.bool_)
     pairs = np.zeros(height, np.int64)
-    nt = min(get_num_threads(), height)
+    nt = max(1, min(threads, height))
     for ti in prange(nt):  # rows dealt out round-robin: prange's equal halves of a view are not equal work
         done = np.zeros(width, np.bool_)
         for y in range(ti, height, nt):
@@ -499,7 +501,8 @@ class _RasterRows(torch.autograd.Function):
         x0, x1, starts, ids, kk, bounded = geom
         r, a = as_f64(rows), as_f64(attrs)
         feat, dsum, dist, log_t, mom, med, med_id, visible, pairs = forward(
-            r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop)
+            r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop,
+            numba.get_num_threads())
         ctx.state = (r, a, geom, width, height, cx, cy, near, m_scale, m_near, t_stop, feat, dsum, mom, med_id)
         ctx.dtype = rows.dtype
         outs = tuple(torch.from_numpy(v).to(rows.dtype) for v in (feat, dsum, dist, log_t, med))
@@ -518,7 +521,7 @@ class _RasterRows(torch.autograd.Function):
 
         gr, ga = backward(r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near,
                           t_stop, feat, dsum, mom, med_id, grad(g_feat, (npix, a.shape[1])), grad(g_dsum, npix),
-                          grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix), get_num_threads())
+                          grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix), numba.get_num_threads())
         return (torch.from_numpy(gr).to(ctx.dtype), torch.from_numpy(ga).to(ctx.dtype)) + (None,) * 9
 
 
