@@ -58,8 +58,8 @@ class DeformNet(nn.Module):
     def heads(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(d mu, d r, d c) from the trunk's last features: the three heads as one product of h with their
         stacked weights (3 + 4 + 3 outputs), so h is read once forward and once backward rather than three
-        times (1.15x the network's forward + backward at `small`, BENCHMARKS.md); the parameters stay the
-        three layers checkpoints know."""
+        times (about 1.1x the network's forward + backward at `small`, BENCHMARKS.md); the parameters stay
+        the three layers checkpoints know."""
         heads = (self.d_mu, self.d_rot, self.d_col)
         out = F.linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
         d_mu, d_rot, d_col = out.split([m.out_features for m in heads], dim=-1)
@@ -76,7 +76,7 @@ class DeformNet(nn.Module):
     def _trunk(self, x_norm: torch.Tensor, t: float) -> torch.Tensor:
         """The MLP on [enc(mu), timenet(enc(t))], with the time features' share of the first and the skip
         layer's product taken once: every Gaussian of a call has the same ``t``, so W_t timenet(enc(t)) + b is
-        one bias row rather than N products (the same sums in another order; ~8 % of the network's forward
+        one bias row rather than N products (the same sums in another order; 1.15x the network's forward
         and backward at `small`, BENCHMARKS.md)."""
         tt = torch.full((1, 1), float(t), dtype=x_norm.dtype, device=x_norm.device)
         tfeat = self.time_net(positional_encoding(tt, self.time_freqs))  # (1, time_net_out)
