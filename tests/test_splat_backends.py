@@ -162,6 +162,49 @@ def test_trace_thresholds_and_chunks_are_shared():
         torch.testing.assert_close(Fa, Fb, atol=1e-12, rtol=0)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_trace_visibility_without_gradients_equals_torch(seed, monkeypatch):
+    """Visibility only and no gradient (relighting, predictions, the diagnostic): the compiled traversal's own
+    transmittance, with no hit list, equals the torch reference (its stop rule, t_min, thresholds, rays along
+    the axes, float32 inputs); with opacities changed since the grid was built, the current ones count."""
+    import method.splat.trace_numba as tn
+
+    params = trace_scene(seed=seed, opacity=(0.05, 1.0) if seed == 2 else (0.05, 0.95))
+    o, d = random_rays(seed=seed, unit=seed != 1, axis_aligned=12)
+    tmin = 0.02 if seed != 2 else torch.rand(o.shape[0], dtype=F64, generator=torch.Generator().manual_seed(3)) * 0.5
+    accel = TraceAccel.build(*params[:4])
+    ref, _ = trace(*params[:4], None, o, d, tmin, accel=accel, backend="torch")
+    assert float(ref.min()) < 0.1 and float(ref.max()) == 1.0  # occluded and free rays
+
+    def no_hit_list(*a, **k):
+        raise AssertionError("the hit list was built where only the transmittance is needed")
+
+    with monkeypatch.context() as m:
+        m.setattr(tn, "march_hits", no_hit_list)
+        with torch.no_grad():
+            T, F = trace(*[p.clone().requires_grad_(True) for p in params[:4]], None, o, d, tmin, accel=accel,
+                         backend="numba")
+        assert F is None
+        torch.testing.assert_close(T, ref, atol=1e-12, rtol=0)
+        for kw in (dict(alpha_min=0.2, T_min=0.3), dict(alpha_min=0.001, T_min=0.001, max_alpha=0.9)):
+            acc = TraceAccel.build(*params[:4], alpha_min=kw["alpha_min"])
+            Ta, _ = trace(*params[:4], None, o, d, tmin, accel=acc, backend="numba", **kw)
+            Tb, _ = trace(*params[:4], None, o, d, tmin, accel=acc, backend="torch", **kw)
+            torch.testing.assert_close(Ta, Tb, atol=1e-12, rtol=0)
+        p32 = [p.float() for p in params[:4]]
+        acc32 = TraceAccel.build(*p32)
+        T32, _ = trace(*p32, None, o.float(), d.float(), tmin, accel=acc32, backend="numba")
+        assert T32.dtype == torch.float32
+        torch.testing.assert_close(T32, trace(*p32, None, o.float(), d.float(), tmin, accel=acc32,
+                                              backend="torch")[0], atol=2e-5, rtol=0)
+    # opacities fine-tuned under a kept grid (stage 2): the hit list path, alphas from the current opacities
+    faded = params[3] * 0.5
+    T_new, _ = trace(params[0], params[1], params[2], faded, None, o, d, tmin, accel=accel, backend="numba")
+    T_ref, _ = trace(params[0], params[1], params[2], faded, None, o, d, tmin, accel=accel, backend="torch")
+    torch.testing.assert_close(T_new, T_ref, atol=1e-12, rtol=0)
+    assert float((T_new - ref).abs().max()) > 0.1
+
+
 def test_backend_setting(monkeypatch):
     cpu = torch.device("cpu")
     assert backend_mod.resolve("auto", cpu) == "numba"

@@ -150,8 +150,10 @@ def time_raster(n: int, size: int, repeats: int, device, warmup: int = 1, ref_si
 
 
 def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup: int = 1,
-               cell_factor: float | None = None, surfaces: bool = False, backend: str | None = None) -> dict:
-    """Median build and query seconds (query: transmittance and features, forward only)."""
+               cell_factor: float | None = None, surfaces: bool = False, backend: str | None = None,
+               features: bool = True) -> dict:
+    """Median build and query seconds (query: transmittance and features, forward only; ``features``
+    False: the transmittance alone, as relighting's visibility asks for it)."""
     from functools import partial
 
     from .trace import TraceAccel, trace
@@ -175,7 +177,7 @@ def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup:
         accel = TraceAccel.build(means, quats, scales, opac, cell_size=cell)
         sync(torch.device(device))
         t1 = time.perf_counter()
-        trans, _ = trace(means, quats, scales, opac, feats, origins, dirs, 0.0, accel=accel)
+        trans, _ = trace(means, quats, scales, opac, feats if features else None, origins, dirs, 0.0, accel=accel)
         sync(torch.device(device))
         t2 = time.perf_counter()
         if i >= warmup:
@@ -190,11 +192,11 @@ def time_trace(n: int, n_points: int, n_dirs: int, repeats: int, device, warmup:
 def run_backends(repeats: int) -> dict:
     """The compiled CPU backend against the torch path, alternated in one run so that the ratios share the
     machine's load: rasterize + backward at 100 and 128 px (20k splats), the tracer query (1024 points x
-    64 directions, 20k splats, random volume and surfaces), and the compiled kernels' share of a step."""
+    64 directions, 20k splats, random volume and surfaces; and visibility alone on the surfaces), and the compiled kernels' share of a step."""
     from lumibench.progress import track
 
-    res: dict = {"raster": [], "trace": []}
-    cases = [("raster", 100), ("raster", 128), ("trace", False), ("trace", True)]
+    res: dict = {"raster": [], "trace": [], "visibility": []}
+    cases = [("raster", 100), ("raster", 128), ("trace", False), ("trace", True), ("visibility", True)]
     for kind, arg in track(cases, description="backends"):
         t: dict = {"torch": [], "numba": []}
         for _ in range(repeats):  # alternate: each round times both
@@ -202,14 +204,16 @@ def run_backends(repeats: int) -> dict:
                 if kind == "raster":
                     sec, pairs, _, _ = time_raster(20_000, arg, 1, "cpu", backend=be)
                 else:
-                    sec = time_trace(20_000, 1024, 64, 1, "cpu", surfaces=arg, backend=be)["query"]
+                    sec = time_trace(20_000, 1024, 64, 1, "cpu", surfaces=arg, backend=be,
+                                     features=kind == "trace")["query"]
                 t[be].append(sec)
         row = {"torch": statistics.median(t["torch"]), "numba": statistics.median(t["numba"])}
         row["speedup"] = row["torch"] / row["numba"]
         if kind == "raster":
             row.update(size=arg, splats=20_000, pairs=pairs, ns_per_pair_numba=row["numba"] / pairs * 1e9)
         else:
-            row.update(scene="surfaces" if arg else "random volume", points=1024, dirs=64, splats=20_000)
+            row.update(scene="surfaces" if arg else "random volume", points=1024, dirs=64, splats=20_000,
+                       features=kind == "trace")
         res[kind].append(row)
     res["raster_kernels"] = raster_kernel_split(128, repeats)
     res["compile"] = numba_compile_seconds()

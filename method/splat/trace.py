@@ -370,6 +370,21 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
     elif accel.num_splats != means.shape[0] or abs(accel.alpha_min - alpha_min) > 0:
         raise ValueError("accel was built for a different splat set or alpha_min; rebuild it")
     compiled = resolve(backend, dev) == "numba"
+    needs_grad = torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales, opacities))
+    # the torch traversal's alphas use the opacities the grid was built with: reused only when those are the
+    # opacities given (a grid kept while opacities are fine-tuned, as stage 2 does, selects the hits, and
+    # the alphas come from the current opacities, as with gradients or the compiled traversal)
+    stale = not torch.equal(accel.splat_rows[:, 12], opacities.detach().to(accel.splat_rows))
+    if compiled and features is None and not needs_grad and not stale:
+        # visibility only, no gradient: the compiled traversal's transmittance (float64, the same kept hits)
+        # is the answer; the hit list and its recomputation below are skipped
+        from .trace_numba import march_transmittance
+
+        with torch.no_grad():
+            T = torch.cat([march_transmittance(accel, origins[i:i + ray_chunk].detach(), dirs[i:i + ray_chunk].detach(),
+                                               tmin[i:i + ray_chunk], T_min, max_alpha)
+                           for i in range(0, R, ray_chunk)]) if R else tmin.new_ones(0)
+        return T.to(device=dev, dtype=dt), None
     if compiled:
         from .trace_numba import march_hits  # numba is optional: imported only when this backend runs
 
@@ -384,12 +399,7 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
         ray = torch.cat([p[0] + i * ray_chunk for i, p in enumerate(parts)]) if parts else tmin.new_zeros(0).long()
         splat = torch.cat([p[1] for p in parts]) if parts else ray
         alpha = None if compiled else (torch.cat([p[2] for p in parts]) if parts else tmin[:0])
-    # the torch traversal's alphas use the opacities the grid was built with: reused only when those are the
-    # opacities given (a grid kept while opacities are fine-tuned, as stage 2 does, selects the hits, and
-    # the alphas come from the current opacities, as with gradients or the compiled traversal)
-    stale = not compiled and not torch.equal(accel.splat_rows[:, 12], opacities.detach().to(accel.splat_rows))
-    if compiled or stale or (torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales,
-                                                                                       opacities))):
+    if compiled or stale or needs_grad:
         # differentiable recomputation on the composited hits only (rays are treated as constants); the torch
         # traversal computed the same alphas with the same operations, so without gradients they are reused
         # (the compiled one works in float64 and returns no alphas: they are computed here)

@@ -8,6 +8,8 @@ the first hit that fails. Rays are independent, so the kernel is parallel over b
 writes at most ``cap`` hits into its own slots, and the rare ray with more is traced again with room
 for the most hits the stop rule allows. Only the traversal is compiled: the differentiable
 recomputation of the kept hits and their compositing stay in trace() (a few vector ops on the hits).
+Where no gradient and no feature is asked for (visibility when relighting, writing predictions, the
+diagnostic), the kernel's own transmittance is the answer and no hit list is kept (march_transmittance).
 """
 from __future__ import annotations
 
@@ -25,17 +27,20 @@ CAP = 32  # hit slots per ray in the first pass
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alpha_min, T_min, max_alpha, cap,
-          max_cell):
+          max_cell, store=True):
     """Per ray up to ``cap`` kept hits (splat ids) and their count; a count of cap + 1 means the ray has
-    more (trace it again with a larger cap). The alphas are not returned: trace() recomputes them."""
+    more (trace it again with a larger cap). The alphas are not returned: trace() recomputes them.
+    Also each ray's transmittance after its kept hits (float64). ``store`` False: no hits are written and
+    ``cap`` does not apply (the transmittance alone, with the same decisions)."""
     R = o.shape[0]
     W = blk_plane.shape[1] // 4
     o_max = 1.0
     for s in range(rows.shape[0]):
         o_max = max(o_max, rows[s, 12])
     rho_max = 2.0 * math.log(o_max / alpha_min) + 1e-6  # o exp(-rho / 2) < alpha_min beyond it, any splat
-    out_s = np.empty((R, cap), np.int64)  # only the first count[i] slots of a row are written
+    out_s = np.empty((R, cap if store else 0), np.int64)  # only the first count[i] slots of a row are written
     count = np.zeros(R, np.int64)
+    trans_out = np.ones(R)
     n_blocks = (R + RAY_BLOCK - 1) // RAY_BLOCK
     for b in prange(n_blocks):
         ht = np.empty(max_cell)
@@ -124,11 +129,12 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                     if trans < T_min:
                         stopped = True
                         break
-                    if n == cap:
-                        n = cap + 1
-                        stopped = True
-                        break
-                    out_s[i, n] = hs[k]
+                    if store:
+                        if n == cap:
+                            n = cap + 1
+                            stopped = True
+                            break
+                        out_s[i, n] = hs[k]
                     n += 1
                     trans *= 1.0 - ha[k]
                 if trans < T_min:
@@ -139,7 +145,8 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                 if not t_next < t_exit or ci[ax] < 0 or ci[ax] >= res[ax]:
                     stopped = True
             count[i] = n
-    return out_s, count
+            trans_out[i] = trans
+    return out_s, count, trans_out
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -183,14 +190,26 @@ def march_hits(accel, origins, dirs, tmin, T_min: float, max_alpha: float):
     o, d, tm = as_f64(origins), as_f64(dirs), as_f64(tmin)
     grid, max_cell = _grid(accel)
     args = (float(accel.alpha_min), float(T_min), float(max_alpha))
-    out_s, count = march(o, d, tm, *grid, *args, CAP, max_cell)
+    out_s, count, _ = march(o, d, tm, *grid, *args, CAP, max_cell)
     over = np.nonzero(count > CAP)[0]
     over_row = np.full(o.shape[0], -1, np.int64)
     if over.size:  # the stop rule bounds the hits: T_min > (1 - alpha_min)^n
         most = int(math.ceil(math.log(T_min) / math.log1p(-accel.alpha_min))) + 1
-        s2, c2 = march(o[over], d[over], tm[over], *grid, *args, most, max_cell)
+        s2, c2, _ = march(o[over], d[over], tm[over], *grid, *args, most, max_cell)
         over_row[over] = np.arange(over.size)
     else:
         s2, c2 = np.zeros((1, 1), np.int64), np.zeros(1, np.int64)
     ray, spl = compact(out_s, count, over_row, s2, c2)
     return torch.from_numpy(ray), torch.from_numpy(spl)
+
+
+def march_transmittance(accel, origins, dirs, tmin, T_min: float, max_alpha: float) -> torch.Tensor:
+    """Each ray's transmittance (float64, (R,)) with no hit list: the traversal's own alphas, from the
+    opacities the grid was built with (trace() takes this path only where those are the current ones and
+    no gradient is asked for: relighting, predictions, the diagnostic)."""
+    match_torch_threads()
+    o, d, tm = as_f64(origins), as_f64(dirs), as_f64(tmin)
+    grid, max_cell = _grid(accel)
+    _, _, trans = march(o, d, tm, *grid, float(accel.alpha_min), float(T_min), float(max_alpha), 0, max_cell,
+                        False)
+    return torch.from_numpy(trans)
