@@ -546,3 +546,38 @@ def test_normal_lift_stops_a_jittered_floor_shadowing_itself():
     assert torch.allclose(low, trace_dense(means, quats, scales, opac, None, p + 0.01 * d, d)[0], atol=1e-9)
     assert float(low.mean()) < 0.8 and float(high.min()) > float(low.mean())
     assert float(high.mean()) > 0.9
+
+
+@pytest.mark.parametrize("quad", [False, True])
+def test_shade_maps_equals_one_map_at_a_time(quad):
+    """Several maps with one set of directions (the benchmark's predictions relight a view under each test
+    light this way) give for each map exactly what shade() gives for it alone from the same generator state
+    and proposal: maps of two sizes, the env quadrature, traced visibility and indirect light; and the
+    irradiance part shades any other albedo as albedo' / pi x E + specular."""
+    from method.shading.deferred import sampling_mixture
+    from method.shading.render import shade_maps
+
+    P = 96
+    n, v, a, r = _gbuffer(P, seed=11)
+    g = torch.Generator().manual_seed(4)
+    sun = _sun_env()
+    other = torch.rand(64, 128, 3, generator=g, dtype=torch.float64) + 0.05
+    other[40, 20] = 150.0
+    envs = [sun, other, torch.flip(sun, [1])]
+    mix = sampling_mixture(envs)
+    pts = torch.randn(P, 3, generator=g, dtype=torch.float64)
+    vis = lambda o, d: torch.sigmoid(4 * (d[:, 1] + o[:, 0]))  # noqa: E731  (depends on origin and direction)
+    ind = lambda o, d: torch.stack([d[:, 0].abs(), o[:, 1].abs(), d[:, 2] ** 2], -1)  # noqa: E731
+    maps = shade_maps(pts, n, v, a, r, envs, 48, torch.Generator().manual_seed(9), vis, ind, sampling_env=mix,
+                      env_quadrature=quad, max_samples=48 * 40)
+    scaled = (a * torch.tensor([1.3, 0.7, 1.1], dtype=torch.float64)).clamp(0, 1)
+    for env, m in zip(envs, maps):
+        rgb, parts = shade(pts, n, v, a, r, env, 48, torch.Generator().manual_seed(9), vis, ind, sampling_env=mix,
+                           env_quadrature=quad, return_parts=True)
+        assert torch.equal(m["rgb"], rgb) and torch.equal(m["specular"], parts["specular"])
+        alone = shade(pts, n, v, scaled, r, env, 48, torch.Generator().manual_seed(9), vis, ind, sampling_env=mix,
+                      env_quadrature=quad)
+        torch.testing.assert_close(scaled / math.pi * m["irradiance"] + m["specular"], alone, rtol=1e-12, atol=0)
+    assert not torch.allclose(maps[0]["rgb"], maps[2]["rgb"])  # the maps do differ
+    with pytest.raises(ValueError, match="sampling_env"):
+        shade_maps(pts, n, v, a, r, envs, 48, visibility=vis)

@@ -13,7 +13,7 @@ from method.buffers import MATERIALS
 from method.model.materials import Materials
 from method.model.scene import Deformed, DynamicScene
 from method.shading.envmap import luminance, texel_solid_angles
-from method.shading.render import shade
+from method.shading.render import shade, shade_maps
 from method.shading.visibility import GaussianTracer, build_accel, lifted_points
 from method.splat.camera import Camera
 from method.splat.rasterize import RasterOutput, rasterize
@@ -85,19 +85,16 @@ def sampling_mixture(envs: list[torch.Tensor]) -> torch.Tensor | None:
     return out / len(envs)
 
 
-def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict, env: torch.Tensor,
-                 n_dirs: int, generator: torch.Generator, tracer: GaussianTracer | None, sampling_env=None,
+def pixel_inputs(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict, tracer: GaussianTracer | None,
                  albedo_scale: torch.Tensor | None = None, override: dict | None = None):
-    """Linear RGB of the pixels ``pix`` (flat ids) shaded under ``env``; also their albedo (linear) and
-    roughness. ``s2``: the stage-2 settings (albedo clamp, normal lift, env quadrature). ``albedo_scale``
-    (3,): the linear albedo multiplied per channel (and kept in [0, 1]) before shading. ``override``: any of
-    "albedo" (P, 3 linear), "roughness" (P,), "normal" (P, 3 unit) used instead of the rasterized buffer
-    (method/diagnose.py puts the ground truth there; the points and the visibility stay ours)."""
+    """What shade() takes at the pixels ``pix`` (flat ids): points (lifted off the surface when traced),
+    unit normals, view directions, linear albedo (clamped as stage 2 clamps it, then scaled) and roughness;
+    ``override`` as in :func:`shade_pixels`."""
     a = out.alpha.reshape(-1)[pix]
     f = out.features.reshape(-1, out.features.shape[-1])[pix]
     albedo = srgb_to_linear(buffers.channel(f, a, MATERIALS.albedo)).clamp(s2["albedo_min"], s2["albedo_max"])
     if albedo_scale is not None:
-        albedo = (albedo * albedo_scale.to(albedo)).clamp(0.0, 1.0)
+        albedo = scaled_albedo(albedo, albedo_scale)
     rough = buffers.channel(f, a, MATERIALS.roughness)
     n = buffers.unit(out.normal.reshape(-1, 3)[pix])
     if override:
@@ -107,6 +104,24 @@ def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict,
     pts, view = surface_points(out, camera, pix)
     if tracer is not None:
         pts = lifted_points(pts, n, view, float(s2["normal_offset"]) * tracer.extent)
+    return pts, n, view, albedo, rough
+
+
+def scaled_albedo(albedo: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Linear albedo multiplied per channel by ``scale`` (3,) and kept in [0, 1] (the `lumimotion` protocol's
+    alignment before shading)."""
+    return (albedo * scale.to(albedo)).clamp(0.0, 1.0)
+
+
+def shade_pixels(out: RasterOutput, camera: Camera, pix: torch.Tensor, s2: dict, env: torch.Tensor,
+                 n_dirs: int, generator: torch.Generator, tracer: GaussianTracer | None, sampling_env=None,
+                 albedo_scale: torch.Tensor | None = None, override: dict | None = None):
+    """Linear RGB of the pixels ``pix`` (flat ids) shaded under ``env``; also their albedo (linear) and
+    roughness. ``s2``: the stage-2 settings (albedo clamp, normal lift, env quadrature). ``albedo_scale``
+    (3,): the linear albedo multiplied per channel (and kept in [0, 1]) before shading. ``override``: any of
+    "albedo" (P, 3 linear), "roughness" (P,), "normal" (P, 3 unit) used instead of the rasterized buffer
+    (method/diagnose.py puts the ground truth there; the points and the visibility stay ours)."""
+    pts, n, view, albedo, rough = pixel_inputs(out, camera, pix, s2, tracer, albedo_scale, override)
     vis = tracer.visibility if tracer is not None else None
     ind = tracer.indirect if (tracer is not None and tracer.use_indirect) else None
     rgb = shade(pts.detach(), n, view, albedo, rough, env, n_dirs, generator, visibility=vis, indirect=ind,
@@ -136,20 +151,31 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
            "p": buffers.channel(out.features, a, MATERIALS.p)}
     if fg.numel() and envs:
         acc = accel if accel is not None else accel_for(d, s2["trace_cell"])
-        # one direction set for every map (env samples drawn from the maps' mixture), so the traversals of
-        # the first map are replayed for the others instead of traced again
-        tracer = tracer_for(d, acc, s2["trace_offset"] * scene.extent, indirect, extent=scene.extent,
-                            replay=len(envs) > 1 or albedo_scale is not None)
-        start = generator.get_state()
-        # maps of different sizes (a 128 x 64 light beside 32 x 16 ones) share one proposal on the finest grid
+        # one direction set for every map (env samples drawn from the maps' mixture): the directions, the BRDF
+        # and the traversals serve every map (shade_maps); maps of different sizes (a 128 x 64 light beside
+        # 32 x 16 ones) share one proposal on the finest grid, and where their sizes do not divide it each
+        # map samples itself and the traversals are traced again
         mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 else None
-        passes = [("relit", None)] + ([("relit_scaled", albedo_scale)] if albedo_scale is not None else [])
-        for tag, scale in passes:
-            for name, env in envs.items():
+        tracer = tracer_for(d, acc, s2["trace_offset"] * scene.extent, indirect, extent=scene.extent)
+        pts, n, view, albedo, rough = pixel_inputs(out, camera, fg, s2, tracer)
+        ind = tracer.indirect if tracer.use_indirect else None
+        kw = dict(visibility=tracer.visibility, indirect=ind, env_quadrature=bool(s2["env_quadrature"]))
+        if mixture is not None or len(envs) == 1:  # one set of directions and traversals serves every map
+            maps = shade_maps(pts.detach(), n, view, albedo, rough, [e.to(a) for e in envs.values()], n_dirs,
+                              generator, sampling_env=mixture, **kw)
+        else:  # no shared proposal: each map samples itself, from the same generator state
+            start = generator.get_state()
+            maps = []
+            for env in envs.values():
                 generator.set_state(start)
-                tracer.rewind()
-                rgb, _, _ = shade_pixels(out, camera, fg, s2, env.to(a), n_dirs, generator, tracer,
-                                         sampling_env=mixture, albedo_scale=scale)
+                maps += shade_maps(pts.detach(), n, view, albedo, rough, [env.to(a)], n_dirs, generator, **kw)
+        # the scaled albedo shades with the same irradiance: diffuse albedo' / pi x E, the specular part as it is
+        scaled = None if albedo_scale is None else scaled_albedo(albedo, albedo_scale)
+        for name, m in zip(envs, maps):
+            passes = [("relit", m["rgb"])]
+            if scaled is not None:
+                passes.append(("relit_scaled", scaled / torch.pi * m["irradiance"] + m["specular"]))
+            for tag, rgb in passes:
                 img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=rgb.device)
                 img[fg] = rgb
                 res[f"{tag}:{name}"] = img.reshape(H, W, 3)

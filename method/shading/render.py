@@ -77,10 +77,34 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
     in the generator's orientation. n_dirs directions per pixel, split by ``mix`` (cosine, ggx, env).
     visibility(origins (R, 3), dirs (R, 3)) -> (R,) in [0, 1]; indirect(origins, dirs) -> (R, 3) radiance
     of what blocks the ray; both are called only on directions that can contribute (above the surface,
-    non-zero BRDF), in chunks. return_parts: also the diffuse and specular parts, as a dict.
+    non-zero BRDF), in chunks. return_parts: also the diffuse and specular parts, and the irradiance E the
+    diffuse part is albedo / pi x E of (so any other albedo shades as albedo' / pi x E + specular), as a dict.
     env_quadrature: the diffuse term's unshadowed part summed over the texels (module docstring).
     """
+    parts = shade_maps(points, normals, view_dirs, albedo, roughness, [envmap], n_dirs, generator, visibility,
+                       indirect, mix=mix, diffuse_weighting=diffuse_weighting, max_samples=max_samples,
+                       sampling_env=sampling_env, env_quadrature=env_quadrature)[0]
+    if return_parts:
+        return parts["rgb"], {k: parts[k] for k in ("diffuse", "specular", "irradiance")}
+    return parts["rgb"]
+
+
+def shade_maps(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.Tensor, albedo: torch.Tensor,
+               roughness: torch.Tensor, envmaps, n_dirs: int = 256, generator: torch.Generator | None = None,
+               visibility: Visibility | None = None, indirect: Indirect | None = None, *, mix=DEFAULT_MIX,
+               diffuse_weighting: str = B.DIFFUSE_WEIGHTING, max_samples: int = MAX_SAMPLES_PER_CHUNK,
+               sampling_env: torch.Tensor | None = None, env_quadrature: bool = False) -> list[dict]:
+    """:func:`shade` under several maps with one set of directions: per map a dict of "rgb", "diffuse",
+    "specular" and "irradiance" (P, 3), each equal to what shade() returns for that map alone with the same
+    generator state and ``sampling_env``. Why: relighting a view under several maps (the benchmark's
+    predictions) samples the directions, evaluates the BRDF and traces the visibility once instead of once
+    per map. Several maps need a shared proposal (``sampling_env``, e.g. deferred.sampling_mixture)."""
+    envmaps = list(envmaps)
     P = normals.shape[0]
+    if not envmaps:
+        raise ValueError("shade_maps needs at least one env map")
+    if len(envmaps) > 1 and sampling_env is None:
+        raise ValueError("several env maps share one set of directions: pass sampling_env (their mixture)")
     if normals.shape != (P, 3) or view_dirs.shape != (P, 3) or albedo.shape != (P, 3):
         raise ValueError(f"normals, view_dirs and albedo must be (P, 3), got {tuple(normals.shape)}, "
                          f"{tuple(view_dirs.shape)}, {tuple(albedo.shape)}")
@@ -88,40 +112,42 @@ def shade(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: torch.T
         raise ValueError("points (P, 3) are needed when visibility or indirect is given")
     if indirect is not None and visibility is None:
         raise ValueError("indirect light needs a visibility callable (it weights indirect by 1 - V)")
-    if envmap.dim() != 3 or envmap.shape[-1] != 3:
-        raise ValueError(f"envmap must be (H, W, 3), got {tuple(envmap.shape)}")
+    for envmap in envmaps:
+        if envmap.dim() != 3 or envmap.shape[-1] != 3:
+            raise ValueError(f"envmap must be (H, W, 3), got {tuple(envmap.shape)}")
     counts = split_directions(n_dirs, mix)
-    moments = None
+    moments = [None] * len(envmaps)
     if env_quadrature:
         if diffuse_weighting == "fresnel":
             raise ValueError("env_quadrature needs a diffuse weight that does not depend on the direction "
                              "(diffuse_weighting 'albedo' or 'none')")
-        moments = texel_moments(envmap.shape[0], envmap.shape[1], quadrature_sub(envmap.shape[0]),
-                                device=normals.device, dtype=normals.dtype)
+        moments = [texel_moments(e.shape[0], e.shape[1], quadrature_sub(e.shape[0]), device=normals.device,
+                                 dtype=normals.dtype) for e in envmaps]
     rough = B.clamp_roughness(roughness.reshape(P))
     # the env strategy's proposal: this map, or another one (relighting one view under several maps with one
     # shared direction set samples from their mixture, which stays unbiased for each map)
-    sampler = EnvSampler.build(envmap if sampling_env is None else sampling_env) if counts[2] > 0 else None
+    sampler = EnvSampler.build(envmaps[0] if sampling_env is None else sampling_env) if counts[2] > 0 else None
     # every random number of the call, per pixel: results do not depend on the chunking
     offsets = random_offsets((P, 5), generator, normals.device, normals.dtype)
     chunk = max(1, max_samples // n_dirs)
-    outs, diffs, specs = [], [], []
+    keys = ("rgb", "diffuse", "specular", "irradiance")
+    outs: list[dict] = [{k: [] for k in keys} for _ in envmaps]
     for s in range(0, P, chunk):
         e = min(P, s + chunk)
-        rgb, dif, spe = _shade_chunk(None if points is None else points[s:e], normals[s:e], view_dirs[s:e],
-                                     albedo[s:e], rough[s:e], envmap, sampler, counts, offsets[s:e], visibility,
-                                     indirect, diffuse_weighting, moments)
-        outs.append(rgb)
-        diffs.append(dif)
-        specs.append(spe)
-    rgb = torch.cat(outs) if outs else albedo.new_zeros(0, 3)
-    if return_parts:
-        return rgb, {"diffuse": torch.cat(diffs) if diffs else rgb, "specular": torch.cat(specs) if specs else rgb}
-    return rgb
+        per_map = _shade_chunk(None if points is None else points[s:e], normals[s:e], view_dirs[s:e],
+                               albedo[s:e], rough[s:e], envmaps, sampler, counts, offsets[s:e], visibility,
+                               indirect, diffuse_weighting, moments)
+        for out, vals in zip(outs, per_map):
+            for k, v in zip(keys, vals):
+                out[k].append(v)
+    empty = albedo.new_zeros(0, 3)
+    return [{k: torch.cat(v) if v else empty for k, v in out.items()} for out in outs]
 
 
-def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, counts, offsets, visibility,
-                 indirect, weighting, moments=None):
+def _shade_chunk(points, normals, view_dirs, albedo, rough, envmaps, sampler, counts, offsets, visibility,
+                 indirect, weighting, moments):
+    """Per map (rgb, diffuse, specular, irradiance) of one chunk of pixels; the directions, pdfs, BRDF and
+    the traced V (and indirect light) are computed once and serve every map."""
     n_cos, n_ggx, n_env = counts
     with torch.no_grad():
         nd, vd, rd = normals.detach(), view_dirs.detach(), rough.detach()
@@ -138,33 +164,42 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmap, sampler, cou
     nh = _dot(h, normals[:, None, :])
     nv = _dot(view_dirs, normals)[:, None]
     r = rough[:, None]
+    texels = {}  # texel ids per map grid: one lookup serves the radiance and the env pdf
     with torch.no_grad():  # balance-heuristic denominator sum_k n_k p_k(l)
         nl0, nh0 = nl.detach(), nh.detach()
         denom = n_cos * pdf_hemisphere(nl0, cosine=True)
         if n_ggx:
             denom = denom + n_ggx * pdf_ggx(nh0, vh, rd[:, None])
-        h_env, w_env = envmap.shape[0], envmap.shape[1]
-        row, col = texel_index(dirs, h_env, w_env)
-        texel = row * w_env + col  # one texel lookup serves the radiance and the env pdf
+        for e in envmaps:
+            hw = (e.shape[0], e.shape[1])
+            if hw not in texels:
+                row, col = texel_index(dirs, *hw)
+                texels[hw] = row * hw[1] + col
         if n_env:  # a proposal on another grid (several maps' mixture) looks its own texels up
-            same_grid = (sampler.height, sampler.width) == (h_env, w_env)
-            denom = denom + n_env * (sampler.pdf_of_texel(texel) if same_grid else sampler.pdf(dirs))
+            hw = (sampler.height, sampler.width)
+            denom = denom + n_env * (sampler.pdf_of_texel(texels[hw]) if hw in texels else sampler.pdf(dirs))
         live = (nl0 > 0) & (nv.detach() > 0) & (denom > 0)
         inv = torch.where(live, 1.0 / denom.clamp_min(1e-30), torch.zeros_like(denom))
     spec = B.specular(nl, nv.expand_as(nl), nh, vh, r)  # (P, S)
     wd = B.diffuse_weight(nv, vh, r, weighting)  # (P, 1), (P, S) or a float
     cos_w = nl.clamp_min(0.0) * inv  # (n.l) / sum_k n_k p_k
-    env_l = envmap.reshape(h_env * w_env, -1)[texel]
-    radiance = _incident(points, dirs, live, env_l, visibility, indirect)
     dw = wd * cos_w if torch.is_tensor(wd) else cos_w * wd
-    if moments is None:
-        diffuse = albedo / torch.pi * (dw[..., None] * radiance).sum(1)
-    else:  # exact unshadowed irradiance + the sampled change that shadowing makes (zero where V = 1)
-        irradiance = _irradiance(normals, moments, envmap.reshape(h_env * w_env, -1))  # (P, 3)
-        irradiance = irradiance * (wd if torch.is_tensor(wd) else float(wd)) * (nv > 0).to(irradiance)
-        diffuse = albedo / torch.pi * (irradiance + (dw[..., None] * (radiance - env_l)).sum(1))
-    specular = ((spec * cos_w)[..., None] * radiance).sum(1)
-    return diffuse + specular, diffuse, specular
+    blocked = _blocked(points, dirs, live, visibility, indirect)
+    out = []
+    for e, mom in zip(envmaps, moments):
+        h_env, w_env = e.shape[0], e.shape[1]
+        env_l = e.reshape(h_env * w_env, -1)[texels[(h_env, w_env)]]
+        radiance = _incident(env_l, blocked)
+        if mom is None:
+            irr = (dw[..., None] * radiance).sum(1)
+        else:  # exact unshadowed irradiance + the sampled change that shadowing makes (zero where V = 1)
+            irradiance = _irradiance(normals, mom, e.reshape(h_env * w_env, -1))  # (P, 3)
+            irradiance = irradiance * (wd if torch.is_tensor(wd) else float(wd)) * (nv > 0).to(irradiance)
+            irr = irradiance + (dw[..., None] * (radiance - env_l)).sum(1)
+        diffuse = albedo / torch.pi * irr
+        specular = ((spec * cos_w)[..., None] * radiance).sum(1)
+        out.append((diffuse + specular, diffuse, specular, irr))
+    return out
 
 
 def _irradiance(normals: torch.Tensor, moments: torch.Tensor, env_flat: torch.Tensor) -> torch.Tensor:
@@ -188,17 +223,26 @@ def _normalize(x: torch.Tensor) -> torch.Tensor:
     return x * torch.rsqrt(_dot(x, x).clamp_min(1e-24))[..., None]
 
 
-def _incident(points, dirs, live, env, visibility, indirect):
-    """L_i (P, S, 3) from env(l) (P, S, 3): env(l), or V env + (1 - V) indirect on the live directions."""
+def _blocked(points, dirs, live, visibility, indirect):
+    """What the traced rays say, shared by every map: None without a visibility callable, else the live
+    directions' flat ids, V (R, 1) and the indirect radiance (R, 3) or None."""
     if visibility is None:
-        return env
-    P, S = dirs.shape[:2]
+        return None
     idx = torch.nonzero(live.reshape(-1)).squeeze(1)
+    P, S = dirs.shape[:2]
     o = points[:, None, :].expand(P, S, 3).reshape(-1, 3).index_select(0, idx)
     d = dirs.reshape(-1, 3).index_select(0, idx)
     V = visibility(o, d).reshape(-1, 1)
+    return idx, V, (indirect(o, d) if indirect is not None else None)
+
+
+def _incident(env, blocked):
+    """L_i (P, S, 3) from env(l) (P, S, 3): env(l), or V env + (1 - V) indirect on the live directions."""
+    if blocked is None:
+        return env
+    idx, V, ind = blocked
     L = env.reshape(-1, 3).index_select(0, idx) * V
-    if indirect is not None:
-        L = L + (1.0 - V) * indirect(o, d)
-    full = env.new_zeros(P * S, 3).index_copy(0, idx, L.to(env.dtype))
-    return full.reshape(P, S, 3)
+    if ind is not None:
+        L = L + (1.0 - V) * ind
+    full = env.new_zeros(env.shape[0] * env.shape[1], 3).index_copy(0, idx, L.to(env.dtype))
+    return full.reshape(env.shape)
