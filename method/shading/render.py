@@ -121,8 +121,12 @@ def shade_maps(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: to
         if diffuse_weighting == "fresnel":
             raise ValueError("env_quadrature needs a diffuse weight that does not depend on the direction "
                              "(diffuse_weighting 'albedo' or 'none')")
-        moments = [texel_moments(e.shape[0], e.shape[1], quadrature_sub(e.shape[0]), device=normals.device,
-                                 dtype=normals.dtype) for e in envmaps]
+        per_size = {}  # maps of one size share their moments (and, per chunk, the cosine weights)
+        for e in envmaps:
+            hw = (e.shape[0], e.shape[1])
+            if hw not in per_size:
+                per_size[hw] = texel_moments(*hw, quadrature_sub(hw[0]), device=normals.device, dtype=normals.dtype)
+        moments = [per_size[(e.shape[0], e.shape[1])] for e in envmaps]
     rough = B.clamp_roughness(roughness.reshape(P))
     # the env strategy's proposal: this map, or another one (relighting one view under several maps with one
     # shared direction set samples from their mixture, which stays unbiased for each map)
@@ -185,15 +189,15 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmaps, sampler, co
     cos_w = nl.clamp_min(0.0) * inv  # (n.l) / sum_k n_k p_k
     dw = wd * cos_w if torch.is_tensor(wd) else cos_w * wd
     blocked = _blocked(points, dirs, live, visibility, indirect)
+    unshadowed = _irradiance(normals, moments, [e.reshape(e.shape[0] * e.shape[1], -1) for e in envmaps])
     out = []
-    for e, mom in zip(envmaps, moments):
+    for e, mom, irradiance in zip(envmaps, moments, unshadowed):
         h_env, w_env = e.shape[0], e.shape[1]
         env_l = e.reshape(h_env * w_env, -1)[texels[(h_env, w_env)]]
         radiance = _incident(env_l, blocked)
         if mom is None:
             irr = (dw[..., None] * radiance).sum(1)
         else:  # exact unshadowed irradiance + the sampled change that shadowing makes (zero where V = 1)
-            irradiance = _irradiance(normals, mom, e.reshape(h_env * w_env, -1))  # (P, 3)
             irradiance = irradiance * (wd if torch.is_tensor(wd) else float(wd)) * (nv > 0).to(irradiance)
             irr = irradiance + (dw[..., None] * (radiance - env_l)).sum(1)
         diffuse = albedo / torch.pi * irr
@@ -202,14 +206,27 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmaps, sampler, co
     return out
 
 
-def _irradiance(normals: torch.Tensor, moments: torch.Tensor, env_flat: torch.Tensor) -> torch.Tensor:
-    """Unshadowed irradiance (P, 3) from the texel cosine weights, in groups of pixels small enough that one
-    group's (pixels, texels, cells) weights stay under MAX_QUADRATURE_TERMS (a map of any size fits)."""
-    step = max(1, MAX_QUADRATURE_TERMS // max(moments.shape[0] * moments.shape[1], 1))
-    if normals.shape[0] <= step:
-        return cosine_weights(normals, moments) @ env_flat
-    return torch.cat([cosine_weights(normals[s:s + step], moments) @ env_flat
-                      for s in range(0, normals.shape[0], step)])
+def _irradiance(normals: torch.Tensor, moments: list, env_flats: list) -> list:
+    """Unshadowed irradiance (P, 3) under each map (None where its moments are None), from the texel cosine
+    weights, which depend on the normals and the map's size only: computed once for the maps of one size, in
+    groups of pixels small enough that one group's (pixels, texels, cells) weights stay under
+    MAX_QUADRATURE_TERMS (a map of any size fits)."""
+    out: list = [None] * len(env_flats)
+    groups: dict = {}
+    for i, mom in enumerate(moments):
+        if mom is not None:
+            groups.setdefault(id(mom), []).append(i)
+    for idx in groups.values():
+        mom = moments[idx[0]]
+        step = max(1, MAX_QUADRATURE_TERMS // max(mom.shape[0] * mom.shape[1], 1))
+        parts: dict = {i: [] for i in idx}
+        for s in range(0, normals.shape[0], step):
+            w = cosine_weights(normals[s:s + step], mom)
+            for i in idx:
+                parts[i].append(w @ env_flats[i])
+        for i in idx:
+            out[i] = parts[i][0] if len(parts[i]) == 1 else torch.cat(parts[i])
+    return out
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
