@@ -33,8 +33,9 @@ from method.data import load_scene
 from method.devices import check_device
 from method.relight import read_run_config, resolve_scene_dir
 from method.outputs import write_sheet
-from method.shading.deferred import accel_for, display, raster_materials, shade_pixels, tracer_for
+from method.shading.deferred import accel_for, display, pixel_inputs, raster_materials, tracer_for
 from method.shading.envmap import load_envmap
+from method.shading.render import shade_maps
 
 ALL = ("albedo", "roughness", "normal")
 # (name, buffers replaced by the ground truth); "ours_unshadowed" and the last step drop our traced shadows
@@ -123,13 +124,24 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
                             extent=scene.extent, replay=True)
         start = gen.get_state()
         row = [buffers.over_background(gt_img, gt_alpha[..., 0], bg.cpu().numpy())]
+        ours = None
         for name, swap in STEPS:
-            gen.set_state(start)
-            tracer.rewind()
             # each buffer is the GT's where the GT has a surface, ours where only our coverage reaches
             override = {k: _where(gt_fg, gtb[k], mine[k]) if k in swap else mine[k] for k in mine}
-            rgb, _, _ = shade_pixels(r, v.camera, fg, s2, env, n_dirs, gen,
-                                     None if "no_shadows" in swap else tracer, override=override)
+            if swap == ("albedo",) and ours is not None:
+                # the same directions, traversals and irradiance as "ours": only the diffuse part's albedo differs
+                rgb = override["albedo"] / torch.pi * ours["irradiance"] + ours["specular"]
+            else:
+                gen.set_state(start)
+                tracer.rewind()
+                step_tracer = None if "no_shadows" in swap else tracer
+                pts, n, view, alb, rough = pixel_inputs(r, v.camera, fg, s2, step_tracer, override=override)
+                parts = shade_maps(pts.detach(), n, view, alb, rough, [env], n_dirs, gen,
+                                   None if step_tracer is None else step_tracer.visibility,
+                                   env_quadrature=bool(s2["env_quadrature"]))[0]
+                rgb = parts["rgb"]
+                if name == "ours":
+                    ours = parts
             img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=dev)
             img[fg] = rgb
             img = buffers.over_background(display(img.reshape(H, W, 3)), a, bg).cpu().numpy()
