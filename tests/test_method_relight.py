@@ -179,7 +179,9 @@ def test_diagnose_swaps_one_buffer_at_a_time_with_the_same_samples(ci_dataset, t
     import method.diagnose as dg
     from method.__main__ import main
 
-    monkeypatch.setattr(dg, "STEPS", dg.STEPS + (("ours_again", ()),))
+    # "gt_albedo_shaded" swaps the albedo through the full shading (the marker keeps it off the shortcut that
+    # takes "gt_albedo" from the "ours" step's irradiance and specular parts): the two must agree
+    monkeypatch.setattr(dg, "STEPS", dg.STEPS + (("ours_again", ()), ("gt_albedo_shaded", ("albedo", "shaded"))))
     out = tmp_path / "diag"
     assert main(["diagnose", "--run", str(tiny_run), "--test-light", "sunrise", "--views", "2", "--dirs", "8",
                  "--out", str(out)]) == 0
@@ -187,6 +189,7 @@ def test_diagnose_swaps_one_buffer_at_a_time_with_the_same_samples(ci_dataset, t
     assert (out / "sheet.png").is_file() and rec["views"] == 2
     steps = rec["per_view_psnr"]
     assert steps["ours_again"] == steps["ours"]
+    assert steps["gt_albedo_shaded"] == pytest.approx(steps["gt_albedo"], abs=1e-9)
     assert steps["gt_albedo"] != steps["ours"] and steps["gt_all"] != steps["gt_albedo"]
     assert steps["ours_unshadowed"] != steps["ours"]  # our buffers, V = 1: the traced shadows are dropped
 
