@@ -40,22 +40,36 @@ class Protocol:
 
     def score_rgb(self, pred: np.ndarray, gt: np.ndarray, alpha: np.ndarray, lpips_net: str) -> dict[str, float]:
         """PSNR / SSIM / LPIPS of one RGB pair (display space, [0, 1]) under this protocol."""
+        return self.score_rgb_to_one([pred], gt, alpha, lpips_net)[0]
+
+    def score_rgb_to_one(self, preds, gt: np.ndarray, alpha: np.ndarray, lpips_net: str) -> list[dict[str, float]]:
+        """:meth:`score_rgb` of several predictions of one view against its ground truth; LPIPS in one batch,
+        the ground truth's features taken once."""
         from benchmark import metrics
 
         a = alpha[..., :1].astype(np.float32)
-        if self.masked_full_image:
-            p, g = pred * a, gt * a
-            psnr = metrics.psnr(p, g, per_channel=self.psnr_per_channel)
-            ssim = metrics.ssim(p, g)
-        else:
+        fg = None
+        if not self.masked_full_image:
             fg = foreground(alpha)
             if not fg.any():
                 raise UserError("a test view has no foreground pixel (GT alpha <= 0.5 everywhere)")
-            p, g = pred * fg, gt * fg
-            psnr = metrics.psnr(pred, gt, mask=fg, per_channel=self.psnr_per_channel)
-            ssim = metrics.ssim(p, g, mask=fg)  # black background: no leak from outside
-        lp = metrics.lpips(p, g, net=lpips_net, input_range=self.lpips_input_range)
-        return {"psnr": cap_psnr(psnr), "ssim": float(ssim), "lpips": float(lp)}
+        g = gt * a if fg is None else gt * fg
+        out, masked = [], []
+        for pred in preds:
+            if fg is None:
+                p = pred * a
+                psnr = metrics.psnr(p, g, per_channel=self.psnr_per_channel)
+                ssim = metrics.ssim(p, g)
+            else:
+                p = pred * fg
+                psnr = metrics.psnr(pred, gt, mask=fg, per_channel=self.psnr_per_channel)
+                ssim = metrics.ssim(p, g, mask=fg)  # black background: no leak from outside
+            out.append({"psnr": cap_psnr(psnr), "ssim": float(ssim)})
+            masked.append(p)
+        lps = metrics.lpips_to_one(masked, g, net=lpips_net, input_range=self.lpips_input_range)
+        for o, lp in zip(out, lps):
+            o["lpips"] = float(lp)
+        return out
 
 
 PROTOCOLS = {

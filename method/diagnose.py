@@ -145,8 +145,10 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
             img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=dev)
             img[fg] = rgb
             img = buffers.over_background(display(img.reshape(H, W, 3)), a, bg).cpu().numpy()
-            scores[name].append(proto.score_rgb(img, gt_img, gt_alpha, "vgg"))
             row.append(img)
+        # the steps of one view in one LPIPS batch (the ground truth's features taken once)
+        for (name, _), sc in zip(STEPS, proto.score_rgb_to_one(row[1:], gt_img, gt_alpha, "vgg")):
+            scores[name].append(sc)
         rows.append(row)
     summary = {}
     for name, _ in STEPS:

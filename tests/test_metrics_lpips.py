@@ -220,3 +220,28 @@ def test_cache_is_written_keyed_by_sha_and_rebuilt_when_corrupt(tmp_path, monkey
         assert torch.load(cached, weights_only=True).keys() == state.keys()
     finally:
         lw._state_dict_cached.cache_clear()
+
+
+@pytest.mark.parametrize("net", ["vgg", "alex"])
+def test_several_predictions_against_one_ground_truth_equal_the_pairs(net):
+    """lpips_to_one (the ground truth's features once, one batch) gives each pair's lpips(); the protocols'
+    score_rgb_to_one gives each pair's score_rgb() (the relight diagnostic scores its steps this way)."""
+    from benchmark.metrics import lpips, lpips_to_one
+    from benchmark.protocol import get_protocol
+
+    rng = np.random.default_rng(3)
+    gt = rng.random((40, 48, 3)).astype(np.float32)
+    preds = [np.clip(gt + rng.normal(0, s, gt.shape), 0, 1).astype(np.float32) for s in (0.02, 0.1, 0.3)]
+    for rng_name in ("[-1,1]", "[0,1]"):
+        many = lpips_to_one(preds, gt, net=net, input_range=rng_name)
+        one = [lpips(p, gt, net=net, input_range=rng_name) for p in preds]
+        assert many == pytest.approx(one, abs=1e-6) and many[0] < many[1] < many[2]
+    alpha = np.zeros((40, 48, 1), np.float32)
+    alpha[5:35, 8:40] = 1.0
+    for proto in ("lumimotion", "strict"):
+        p = get_protocol(proto)
+        many = p.score_rgb_to_one(preds, gt, alpha, net)
+        for m, pred in zip(many, preds):
+            one = p.score_rgb(pred, gt, alpha, net)
+            assert m["psnr"] == one["psnr"] and m["ssim"] == one["ssim"]
+            assert m["lpips"] == pytest.approx(one["lpips"], abs=1e-6)

@@ -8,7 +8,7 @@ the function.)
 """
 from __future__ import annotations
 
-from .lpips import get_model, lpips
+from .lpips import get_model, lpips, lpips_to_one
 from .lpips_weights import lpips_weights_info
 from .psnr import mse, psnr
 from .ssim import ssim, ssim_map
@@ -22,4 +22,4 @@ def __getattr__(name):
     raise AttributeError(name)
 
 
-__all__ = ["mse", "psnr", "ssim", "ssim_map", "lpips", "get_model", "lpips_weights_info", "LPIPSModel"]
+__all__ = ["mse", "psnr", "ssim", "ssim_map", "lpips", "lpips_to_one", "get_model", "lpips_weights_info", "LPIPSModel"]

