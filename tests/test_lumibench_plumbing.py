@@ -1,5 +1,6 @@
 """Shared plumbing: YAML validation messages, atomic writes, image reading errors, profiles."""
 
+import os
 import numpy as np
 import pytest
 
@@ -91,3 +92,21 @@ def test_parse_light_names_a_file_by_its_stem(tmp_path):
         parse_light("/maps/sky.png")
     with pytest.raises(UserError, match="rename the file"):
         parse_light("/maps/.hidden.hdr")
+
+
+@pytest.mark.parametrize("entry", ["method", "benchmark"])
+def test_entry_points_make_openmp_wait_passively(entry):
+    """`python -m method` / `python -m benchmark` set OMP_WAIT_POLICY=PASSIVE before torch or Numba load (the
+    grid's workers inherit it): with active waiting, two one-thread grid workers on a 2-core box ran stage 1
+    ~7x slower. A value the user set is kept."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    code = (f"import os, sys; import {entry}.__main__; "
+            "print(os.environ.get('OMP_WAIT_POLICY')); print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["PASSIVE", "False"]
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split()[0] == "ACTIVE"
