@@ -369,8 +369,10 @@ def ray_connect(workers: int = 1) -> None:
     if problem:
         raise UserError(problem)
     try:
+        # the workers wait passively, as `python -m benchmark` makes the local ones (benchmark/__main__.py)
         ray.init(address=address, ignore_reinit_error=True, include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.WARNING, num_cpus=None if address else max(workers, 1))
+                 logging_level=logging.WARNING, num_cpus=None if address else max(workers, 1),
+                 runtime_env={"env_vars": {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}})
     except Exception as exc:
         cause = " ".join(str(exc).split())[:300]
         raise UserError(f"cannot connect to {where}: {type(exc).__name__}: {cause}{_ray_token_hint(address)}") from None
