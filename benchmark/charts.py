@@ -1,4 +1,5 @@
-"""Charts (matplotlib, Agg): quality vs training time (Pareto front), vs Gaussian count, seed stability, and
+"""Charts (matplotlib, Agg): quality vs training time (Pareto front), vs Gaussian count, seed stability, one
+scene under each condition (a stress sweep's results: one column per configuration or '@' variant), and
 where the relight error comes from (the relight diagnostic, when some result carries one).
 
 Failed runs are drawn (a red cross in a row kept free under the data, counted in the legend), never
@@ -390,6 +391,94 @@ def stability_chart(results: Sequence[dict], path: Path) -> Path:
     return _save(fig, path)
 
 
+def condition_of(result: dict) -> tuple[str, str, str]:
+    """(train light, test light, variant) of a result: the variant is the part of its method after '@'
+    (a budget or stress variant, "" for none)."""
+    return result["train_light"], result["test_light"], result["method"].partition("@")[2]
+
+
+def condition_label(cond: tuple[str, str, str]) -> str:
+    train, test, variant = cond
+    return f"{train}→{test}" + (f"\n@{variant}" if variant else "")
+
+
+def conditions_data(results: Sequence[dict], key: str) -> dict[str, Any]:
+    """What the conditions chart draws for ``key`` on one scene: the conditions (one column each: the
+    configuration and the variant, the most-run configuration without a variant first, then the other
+    configurations, then the variants), the base methods (the part before '@', one colour each), and per
+    (base method, condition) its x and the (seed, value) of each successful run; ``marks``: each failed or
+    diverged run at its own cell's x (its ``method`` the base method)."""
+    runs = [r for r in results if not is_not_run(r)]
+    bases = list(dict.fromkeys(r["method"].partition("@")[0] for r in runs))
+    count: dict[tuple, int] = {}
+    for r in runs:
+        c = condition_of(r)
+        count[c] = count.get(c, 0) + 1
+    conds = sorted(count, key=lambda c: (c[2] != "", -count[c] if not c[2] else 0, c[2], c[0], c[1]))
+    width = 0.6 / max(len(bases), 1)
+    cells, xs = [], {}
+    for i, c in enumerate(conds):
+        for k, b in enumerate(bases):
+            mine = [r for r in runs if condition_of(r) == c and r["method"].partition("@")[0] == b]
+            if not mine:
+                continue
+            x = i + (k - (len(bases) - 1) / 2) * width
+            xs[(b, c)] = x
+            vals = [(r["seed"], metric_value(r, key)) for r in mine if r["status"] == "ok"]
+            cells.append({"method": b, "condition": c, "x": x, "values": [(sd, v) for sd, v in vals if v is not None]})
+    marks = []
+    for mk in failure_marks(runs):
+        base = mk["method"].partition("@")[0]
+        cond = (mk["train_light"], mk["test_light"], mk["method"].partition("@")[2])
+        marks.append({**mk, "method": base, "x": xs.get((base, cond)), "label": f"s{mk['seed']}"})
+    return {"conditions": conds, "methods": bases, "cells": cells, "marks": marks}
+
+
+def has_conditions(results: Sequence[dict]) -> bool:
+    """True for results of one scene under two or more conditions (a stress sweep's shape)."""
+    runs = [r for r in results if not is_not_run(r)]
+    return len({r["scene"] for r in runs}) == 1 and len({condition_of(r) for r in runs}) > 1
+
+
+def conditions_chart(results: Sequence[dict], path: Path) -> Path:
+    """One scene under each condition (a stress sweep: fewer frames, a Gaussian cap, another light), the
+    methods side by side in each column: every seed a dot, the seeds' range a bar, the mean a tick, a
+    failed or diverged run a cross in its column, so where a method breaks and how much its seeds spread
+    show at a glance."""
+    plt = _plt()
+    runs = [r for r in results if not is_not_run(r)]
+    scene = runs[0]["scene"] if runs else ""
+    fig, axes = plt.subplots(1, len(QUALITY), figsize=(5.6 * len(QUALITY) + 1.4, 4.6), layout="constrained")
+    fig.suptitle(_titled(f"{scene}: each condition, the methods side by side", results)
+                 + "\ndots: seeds, bar: min-max, tick: mean; x: failed or diverged")
+    for ax, (key, label, _) in zip(np.atleast_1d(axes), QUALITY):
+        data = conditions_data(results, key)
+        colours = _colours(data["methods"])
+        for cell in data["cells"]:
+            vs = [v for _, v in cell["values"]]
+            if not vs:
+                continue
+            x, col = cell["x"], colours[cell["method"]]
+            ax.plot([x, x], [min(vs), max(vs)], color=col, lw=1, alpha=0.6)
+            ax.scatter([x] * len(vs), vs, s=18, color=col, zorder=3)
+            ax.plot([x - 0.08, x + 0.08], [float(np.mean(vs))] * 2, color=col, lw=2, zorder=3)
+        for m in data["methods"]:  # legend entries only (the figure legend collects them)
+            ax.plot([], [], ls="", marker="o", color=colours[m], label=m)
+        _draw_failures(ax, data["marks"], data["methods"])
+        counts: dict[str, int] = {}
+        for mk in data["marks"]:
+            counts[mk["method"]] = counts.get(mk["method"], 0) + 1
+        _reserve_failure_row(ax, max(counts.values(), default=0))
+        ax.set_xticks(range(len(data["conditions"])), [condition_label(c) for c in data["conditions"]],
+                      fontsize=8)
+        ax.set_xlim(-0.6, len(data["conditions"]) - 0.4)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3, axis="y")
+    _figure_legend(fig, axes)
+    _figure_notes(fig, [_not_run_note(results)])
+    return _save(fig, path)
+
+
 # the relight diagnostic's steps (method/diagnose.py) drawn as gains over "ours": key, legend label, colour, hatch
 DIAGNOSE_GAINS = (
     ("gt_albedo", "GT albedo", "#4c72b0", ""),
@@ -486,6 +575,8 @@ def all_charts(results: Sequence[dict], out_dir: Path) -> dict[str, Path]:
         "gaussians": gaussians_chart(results, out_dir / "quality_vs_gaussians.png"),
         "stability": stability_chart(results, out_dir / "stability.png"),
     }
+    if has_conditions(results):
+        charts["conditions"] = conditions_chart(results, out_dir / "conditions.png")
     if has_diagnose(results):
         charts["relight_error_sources"] = relight_error_sources_chart(results, out_dir / "relight_error_sources.png")
     return charts

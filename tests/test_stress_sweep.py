@@ -441,3 +441,39 @@ def test_quality_charts_draw_the_seeds_spread_per_point():
     assert sorted(spreads) == [(100.0, (25.0, 26.0)), (100.0, (25.0, 27.0))]
     flat = [(x, lo, hi) for x, (lo, hi) in charts.seed_spreads(rs, "static", training_seconds, "relight.psnr")]
     assert flat == [pytest.approx((101.0, 25.0, 27.0))] * 2
+
+
+def test_conditions_chart_puts_each_stress_in_its_own_column(monkeypatch, tmp_path):
+    """One scene under several conditions (configurations and '@' variants): one column per condition, the
+    most-run configuration without a variant first and the variants last, the base methods side by side in
+    each, every seed's value in its own column and each failure at its own cell; drawn by all_charts for one
+    scene only."""
+    import matplotlib.pyplot as plt
+
+    from benchmark import charts
+
+    rs = _stress_results() + [fake_result(m, "spheres", "city", "sunrise", s, relight_psnr=20 + s)
+                              for m in ("lumimotion@cap2000", "static@cap2000") for s in (0, 1)]
+    rs.append(_diverged("static@cap2000", "spheres", "city", "sunrise", 2))
+    data = charts.conditions_data(rs, "relight.psnr")
+    assert data["conditions"] == [("city", "sunrise", ""), ("sunrise", "city", ""), ("city_sharp", "sunrise", ""),
+                                  ("city", "sunrise", "cap2000")]
+    assert data["methods"] == ["lumimotion", "static"]
+    cell = {(c["method"], c["condition"]): c for c in data["cells"]}
+    assert sorted(v for _, v in cell[("static", ("city", "sunrise", "cap2000"))]["values"]) == [20, 21]
+    assert sorted(v for _, v in cell[("lumimotion", ("city", "sunrise", ""))]["values"]) == [25, 26, 27]
+    assert 2.5 < cell[("static", ("city", "sunrise", "cap2000"))]["x"] < 3.5
+    marks = {(m["method"], m["kind"]): m["x"] for m in data["marks"]}
+    assert marks[("static", "diverged")] == cell[("static", ("city", "sunrise", "cap2000"))]["x"]
+    assert marks[("lumimotion", "diverged")] == cell[("lumimotion", ("sunrise", "city", ""))]["x"]
+    assert marks[("static", "failed")] == cell[("static", ("city_sharp", "sunrise", ""))]["x"]
+    figs = []
+    monkeypatch.setattr(charts, "_save", lambda fig, path: figs.append(fig) or path)
+    assert "conditions" in charts.all_charts(rs, tmp_path)
+    fig = figs[-1]
+    ticks = [t.get_text() for t in fig.axes[0].get_xticklabels()]
+    assert ticks == ["city→sunrise", "sunrise→city", "city_sharp→sunrise", "city→sunrise\n@cap2000"]
+    for f in figs:
+        plt.close(f)
+    two = rs + [fake_result("static", "mouse", "city", "sunrise", 0)]
+    assert not charts.has_conditions(two) and charts.has_conditions(rs)
