@@ -1,11 +1,9 @@
 """python -m benchmark VERB: metrics of two images, scoring a prediction folder, the evaluation grid."""
-import os
 import sys
 
-# before torch or Numba load, in this process and the grid's workers (they inherit it): with active OpenMP
-# waiting, each one-thread grid worker kept a second thread spinning, and two workers on a 2-core box ran
-# stage 1 ~7x slower (1.1 s against 0.15 s per iteration, measured session 23)
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from lumibench.threads import configure_threads
+
+configure_threads()  # before torch or Numba load; the grid's workers inherit it (lumibench/threads.py)
 
 from lumibench.cli import build_main
 

@@ -1,9 +1,9 @@
 """python -m method VERB: train LumiMotion (stage 1, stage 2) and relight a trained run."""
-import os
 import sys
 
-# before torch loads: with active OpenMP waiting, 2 threads on a busy 2-core box ran ~15x slower (measured)
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from lumibench.threads import configure_threads
+
+configure_threads()  # before torch or Numba load; the grid's workers inherit it (lumibench/threads.py)
 
 from lumibench.cli import build_main
 

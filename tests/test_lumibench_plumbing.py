@@ -95,18 +95,23 @@ def test_parse_light_names_a_file_by_its_stem(tmp_path):
 
 
 @pytest.mark.parametrize("entry", ["method", "benchmark"])
-def test_entry_points_make_openmp_wait_passively(entry):
-    """`python -m method` / `python -m benchmark` set OMP_WAIT_POLICY=PASSIVE before torch or Numba load (the
-    grid's workers inherit it): with active waiting, two one-thread grid workers on a 2-core box ran stage 1
-    ~7x slower. A value the user set is kept."""
+def test_entry_points_set_the_thread_environment_before_torch(entry):
+    """`python -m method` / `python -m benchmark` set OMP_WAIT_POLICY=PASSIVE and NUMBA_NUM_THREADS from
+    OMP_NUM_THREADS before torch or Numba load (the grid's workers inherit them): with active waiting, two
+    one-thread grid workers on a 2-core box ran stage 1 ~7x slower, and Numba's idle pool thread took ~25 %
+    of a one-thread worker's CPU. Values the user set are kept."""
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    code = (f"import os, sys; import {entry}.__main__; "
-            "print(os.environ.get('OMP_WAIT_POLICY')); print('torch' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["PASSIVE", "False"]
-    env["OMP_WAIT_POLICY"] = "ACTIVE"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split()[0] == "ACTIVE"
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_NUM_THREADS", "OMP_NUM_THREADS")}
+    code = (f"import os, sys; import {entry}.__main__; print(os.environ.get('OMP_WAIT_POLICY'), "
+            "os.environ.get('NUMBA_NUM_THREADS'), 'torch' in sys.modules, 'numba' in sys.modules)")
+
+    def run(**extra):
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                             check=True)
+        return out.stdout.split()
+
+    assert run() == ["PASSIVE", "None", "False", "False"]
+    assert run(OMP_NUM_THREADS="1") == ["PASSIVE", "1", "False", "False"]
+    assert run(OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="2", OMP_WAIT_POLICY="ACTIVE")[:2] == ["ACTIVE", "2"]
