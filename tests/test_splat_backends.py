@@ -270,3 +270,26 @@ def test_every_compiled_kernel_can_be_cached():
     uncachable = [name for name, k in compiled.items()
                   if k._cache is not None and any(c.library.has_dynamic_globals for c in k.overloads.values())]
     assert uncachable == []
+
+
+def test_compiled_kernels_leave_torchs_thread_count_alone():
+    """Numba's OpenMP pool, started by the first compiled kernel, sets the process's OpenMP thread count, and
+    torch reads the same one: a grid worker set to one thread (benchmark.jobgrid.execute) ran torch on two
+    from then on. In a fresh process (the pool starts once): torch set to one thread stays at one, and the
+    kernels run on one."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import torch, numba; torch.set_num_threads(1)\n"
+            "from method.splat.bench import make_scene, make_trace_queries\n"
+            "from method.splat.rasterize import rasterize\nfrom method.splat.trace import trace\n"
+            "m, q, s, o, f, cam = make_scene(500, 32)\n"
+            "rasterize(m, q, s, o, f, cam, backend='numba')\nafter_raster = torch.get_num_threads()\n"
+            "org, d = make_trace_queries(m, q, s, 8, 4)\ntrace(m, q, s, o, None, org, d, backend='numba')\n"
+            "print(after_raster, torch.get_num_threads(), numba.get_num_threads())\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    env["NUMBA_NUM_THREADS"] = "2"  # a pool of two, as on a 2-core machine with nothing set
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert out.stdout.split() == ["1", "1", "1"], out.stdout + out.stderr

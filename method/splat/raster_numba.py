@@ -477,10 +477,18 @@ def _cross_back(m, i, j, g, gm):
 
 
 def match_torch_threads() -> None:
-    """Run the kernels on as many threads as torch uses (torch.set_num_threads, JOBS=N workers)."""
-    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    if numba.get_num_threads() != n:
+    """Run the kernels on as many threads as torch uses (torch.set_num_threads, JOBS=N workers).
+
+    Numba's OpenMP pool, started on first use, sets the process's OpenMP thread count to
+    NUMBA_NUM_THREADS, and torch reads the same count: a grid worker set to one thread ran torch on two
+    from its first kernel on (two such workers on 2 cores: stage 2 ~3x slower, BENCHMARKS.md). So torch's
+    count is read before and put back after."""
+    want = torch.get_num_threads()
+    n = max(1, min(want, numba.config.NUMBA_NUM_THREADS))
+    if numba.get_num_threads() != n:  # the first call starts the pool
         numba.set_num_threads(n)
+    if torch.get_num_threads() != want:
+        torch.set_num_threads(want)
 
 
 def as_f64(t: torch.Tensor) -> np.ndarray:
