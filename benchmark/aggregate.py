@@ -55,6 +55,8 @@ COLUMNS = (
 EXTRA_COLUMNS = (
     Column("separation.iou", "Separation", "IoU", True, 3),
     Column("separation.balanced_accuracy", "Separation", "bal. acc.", True, 3),
+    Column("separation.dynamic_recall", "Separation", "moving recall", True, 3),  # the class that fails first
+    Column("nvs_moving.gap_db", "Moving objects", "NVS gap dB", False, 1),  # whole image's PSNR - moving pixels'
     Column("normal.mae_deg", "Normal", "MAE °", False, 1),
 )
 

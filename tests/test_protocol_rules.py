@@ -380,6 +380,9 @@ def test_separation_iou_and_balanced_accuracy_on_foreground_of_train_views(world
     got = world.results[protocol]["metrics"]["separation"]
     assert got["iou"] == pytest.approx(iou, abs=1e-12)
     assert got["balanced_accuracy"] == pytest.approx(ba, abs=1e-12)
+    assert got["dynamic_recall"] == pytest.approx(tp / (tp + fn), abs=1e-12)
+    assert got["static_recall"] == pytest.approx(tn / (tn + fp), abs=1e-12)
+    assert abs(got["dynamic_recall"] - got["static_recall"]) > 0.01  # the classes told apart, not swapped
     atp, afp, afn, atn = counts([np.ones_like(a, bool) for a in world.train_alpha])             # no mask
     _moves(atp / (atp + afp + afn), iou, 0.02)
     _moves(0.5 * (atp / (atp + afn) + atn / (atn + afp)), ba, 0.02)
