@@ -18,7 +18,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from lumibench.machine import cpu_name, usable_cores
+from lumibench.machine import cpu_description, usable_cores
 from lumibench.profiles import load_profile
 
 from . import pipeline, spec as spec_mod
@@ -109,7 +109,7 @@ def renders_per_scene(scene: str, profile: str) -> int:
 
 
 def machine() -> dict[str, Any]:
-    return {"cpu": cpu_name(), "cores": usable_cores(), "gpu": None, "python": platform.python_version(),
+    return {"cpu": cpu_description(), "cores": usable_cores(), "gpu": None, "python": platform.python_version(),
             "platform": platform.platform(), "load_average_at_start": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 

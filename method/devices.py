@@ -1,10 +1,11 @@
 """Devices: the --device a user asks for, checked before anything loads, and what a run records of it."""
 from __future__ import annotations
 
-import platform
 import resource
 
 import torch
+
+from lumibench.machine import cpu_description
 
 from lumibench.errors import UserError
 
@@ -45,7 +46,7 @@ def peak_memory_bytes(device: torch.device) -> int:
 def device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
-    return platform.processor() or platform.machine() or "cpu"
+    return cpu_description()
 
 
 def cpu_has_native_bf16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:

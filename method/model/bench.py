@@ -17,7 +17,7 @@ import torch
 
 from lumibench.errors import UserError
 from lumibench.io import atomic_write_json
-from lumibench.machine import cpu_name
+from lumibench.machine import cpu_description
 from method.checkpoints import build_net
 from method.config import load_method_config
 from method.model.deform import PRECISIONS
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     load = list(os.getloadavg())
     res = time_deform(args.profile, args.gaussians, args.repeats)
-    res.update(device=f"cpu ({cpu_name()}, {os.cpu_count()} logical cores)", threads=args.threads,
+    res.update(device=f"cpu ({cpu_description()}, {os.cpu_count()} logical cores)", threads=args.threads,
                torch=torch.__version__, repeats=args.repeats, load_average_before=load,
                load_average_after=list(os.getloadavg()),
                command=" ".join(["python -m method.model.bench"] + list(argv if argv is not None else sys.argv[1:])))

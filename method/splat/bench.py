@@ -24,7 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
-from lumibench.machine import cpu_name
+from lumibench.machine import cpu_description
 from lumibench.errors import UserError, run_cli
 
 from .camera import Camera
@@ -473,7 +473,7 @@ def main(argv=None) -> int:
 def _device_name(dev: str) -> str:
     if dev.startswith("cuda"):
         return torch.cuda.get_device_name(torch.device(dev))
-    return f"cpu ({cpu_name()}, {os.cpu_count()} logical cores)"
+    return f"cpu ({cpu_description()}, {os.cpu_count()} logical cores)"
 
 
 if __name__ == "__main__":
