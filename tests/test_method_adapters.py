@@ -33,6 +33,27 @@ def test_budget_variants_parse_and_reject_nonsense():
         get_adapter("lumimotion@fast")
 
 
+def test_one_stages_budget_scales_that_stage_alone():
+    """`make demo`'s lumimotion@s1x8: stage 1 at 8x ci's schedule, stage 2 at ci's own."""
+    from method.config import ITERATION_KEYS, load_method_config
+
+    ci = load_method_config("ci")
+    ov = get_adapter("lumimotion@s1x8").overrides("ci")
+    for key in ITERATION_KEYS["stage1"]:
+        if ci["stage1"][key] > 0:
+            assert f"stage1.{key}={ci['stage1'][key] * 8}" in ov, key
+    assert not any(o.startswith("stage2.") for o in ov)
+    # composed with the common fraction: 8x both, stage 2 back to 1x
+    assert sorted(get_adapter("lumimotion@8+s2x0.125").overrides("ci")) == sorted(ov)
+    ov2 = get_adapter("lumimotion@s2x0.5").overrides("ci")
+    assert ov2 == [f"stage2.iterations={ci['stage2']['iterations'] // 2}"]
+    for bad, msg in (("s3x2", "unknown budget"), ("s1x9", r"stage1 runs at 9x .* \(0, 8\]"),
+                     ("4+s1x4", r"stage1 runs at 16x"), ("s1x2+s1x4", "stage-1 fraction twice"), ("s2x0", "stage2 runs at 0x")):
+        with pytest.raises(UserError, match=msg) as exc:
+            get_adapter(f"lumimotion@{bad}")
+        assert "\n" not in str(exc.value), bad
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("method", ["lumimotion", "wo_stage2", "wo_dc", "wo_P", "static"])
 def test_in_project_adapter_end_to_end(ci_dataset, tmp_path, method, monkeypatch):

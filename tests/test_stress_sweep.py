@@ -84,11 +84,11 @@ def test_loader_keeps_the_frames_evenly_over_time_not_file_order(tmp_path):
 
 
 def test_frames_budget_parses_and_bad_values_are_one_line():
-    from baselines_adapters.lumimotion import parse_budget
+    from baselines_adapters.lumimotion import Budget, parse_budget
     from baselines_adapters.registry import get_adapter, is_known
 
-    assert parse_budget("frames0.25") == (1.0, 0, 0.25)
-    assert parse_budget("0.5+cap2000+frames0.5") == (0.5, 2000, 0.5)
+    assert parse_budget("frames0.25") == Budget(frames=0.25)
+    assert parse_budget("0.5+cap2000+frames0.5") == Budget(0.5, 2000, 0.5)
     assert get_adapter("lumimotion@frames0.25").overrides("small") == ["data.train_frames=0.25"]
     ov = get_adapter("static@frames0.25+cap2000").overrides("small")
     assert "data.train_frames=0.25" in ov and "stage1.max_gaussians=2000" in ov
