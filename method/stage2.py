@@ -27,7 +27,6 @@ from method.data import SceneData
 from method.env_fit import fit_env
 from method.model.materials import Materials
 from method.model.scene import DynamicScene
-from method.schedules import expon_lr
 from method.shading.deferred import (accel_for, display, raster_materials, render_pbr_view, shade_pixels,
                                      tracer_for)
 from method.shading.envmap import LearnableEnvMap, lower_hemisphere_l2
