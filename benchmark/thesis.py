@@ -6,7 +6,8 @@ Per (configuration, scene) where both methods have successful runs: each method'
 for albedo and relight LPIPS and PSNR and roughness MSE, and the change from static to dynamic (relative, in
 percent, for LPIPS and MSE; a difference in dB for PSNR); then, per configuration, the mean +- std over scenes
 of those per-scene changes and the number of scenes on which the dynamic method is better. Scenes where one of
-the two has no successful run are listed as such, never averaged in. Built from result files only.
+the two was not run, or has no successful run, are listed as such (a run not yet in the grid is not a
+failure), never averaged in. Built from result files only.
 """
 from __future__ import annotations
 
@@ -49,6 +50,15 @@ def _values(results: Sequence[dict], method: str, conf: tuple[str, str], scene: 
     return [v for v in vals if v is not None]
 
 
+def _lacking(row: dict) -> str:
+    """Why a scene has no comparison: a method not run there (not yet in the grid) is not one that failed."""
+    not_run = row.get("not_run", [])
+    failed = [m.strip() for m in row["missing"].split(",") if m.strip() not in not_run]
+    parts = ([f"{', '.join(not_run)} not run"] if not_run else []) + \
+            ([f"no successful run of {', '.join(failed)}"] if failed else [])
+    return "; ".join(parts)
+
+
 def change(dynamic: float, static: float, metric: ThesisMetric) -> float:
     """Static -> dynamic: percent of the static value (relative metrics) or the difference."""
     if metric.relative:
@@ -76,6 +86,8 @@ def compare(results: Sequence[dict], dynamic: str = DYNAMIC, static: str = STATI
             lacking = [name for name, ok in have.items() if not ok]
             if lacking:
                 row["missing"] = ", ".join(lacking)
+                tried = {r["method"] for r in results if r["scene"] == scene and (r["train_light"], r["test_light"]) == conf}
+                row["not_run"] = [name for name in lacking if name not in tried]  # no result at all, not a failure
                 rows.append(row)
                 continue
             for m in METRICS:
@@ -125,14 +137,14 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None, dynamic: 
         if all(r["missing"] for r in comp["scenes"]):
             lines += ["", f"## {train} → {test}", "",
                       "No scene has successful runs of both: " + "; ".join(
-                          f"{r['scene']} (no {r['missing']})" for r in comp["scenes"]) + "."]
+                          f"{r['scene']} ({_lacking(r)})" for r in comp["scenes"]) + "."]
             continue
         lines += ["", f"## {train} → {test}", "",
                   "| scene | seeds (dyn / static) | " + " | ".join(m.label for m in METRICS) + " |",
                   "|:--|:--|" + "--:|" * len(METRICS)]
         for row in comp["scenes"]:
             if row["missing"]:
-                lines.append(f"| {row['scene']} | no successful run of {row['missing']} |" + " – |" * len(METRICS))
+                lines.append(f"| {row['scene']} | {_lacking(row)} |" + " – |" * len(METRICS))
                 continue
             first = next(iter(row["metrics"].values()))
             cells = []

@@ -25,6 +25,7 @@ def _results():
             rs.append(fake_result(method, scene, seed=seed, lpips=lp, relight_psnr=relight))
     rs.append(fake_result("lumimotion", "c", seed=0))          # no static run on c: listed, not averaged
     rs.append(fake_result("static", "c", seed=0, status="failed"))
+    rs.append(fake_result("lumimotion", "d", seed=0))          # static not run on d (yet): not a failure
     rs.append(fake_result("lit_as_albedo", "a", seed=0, lpips=0.5))  # other methods are ignored
     return rs
 
@@ -51,6 +52,7 @@ def test_per_scene_changes_and_the_mean_over_scenes_match_a_hand_computation():
 def test_markdown_names_missing_runs_and_the_paper_claims():
     text = thesis.markdown(thesis.compare(_results()), "lumimotion")
     assert "| c | no successful run of static |" in text
+    assert "| d | static not run |" in text
     assert "0.100 → 0.050 ± 0.010 (**-50.0 %**)" in text
     assert "+1.50 dB" in text and "better on 1 of 2" in text
     assert "-23 %" in text and "-15 %" in text
