@@ -52,10 +52,8 @@ def _values(results: Sequence[dict], method: str, conf: tuple[str, str], scene: 
 
 def _lacking(row: dict) -> str:
     """Why a scene has no comparison: a method not run there (not yet in the grid) is not one that failed."""
-    not_run = row.get("not_run", [])
-    failed = [m.strip() for m in row["missing"].split(",") if m.strip() not in not_run]
-    parts = ([f"{', '.join(not_run)} not run"] if not_run else []) + \
-            ([f"no successful run of {', '.join(failed)}"] if failed else [])
+    parts = ([f"{', '.join(row['not_run'])} not run"] if row["not_run"] else []) + \
+            ([f"no successful run of {', '.join(row['failed'])}"] if row["failed"] else [])
     return "; ".join(parts)
 
 
@@ -88,6 +86,7 @@ def compare(results: Sequence[dict], dynamic: str = DYNAMIC, static: str = STATI
                 row["missing"] = ", ".join(lacking)
                 tried = {r["method"] for r in results if r["scene"] == scene and (r["train_light"], r["test_light"]) == conf}
                 row["not_run"] = [name for name in lacking if name not in tried]  # no result at all, not a failure
+                row["failed"] = [name for name in lacking if name in tried]
                 rows.append(row)
                 continue
             for m in METRICS:

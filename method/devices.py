@@ -5,7 +5,7 @@ import resource
 
 import torch
 
-from lumibench.machine import cpu_description
+from lumibench.machine import cpu_description, cpu_fields
 
 from lumibench.errors import UserError
 
@@ -53,12 +53,7 @@ def cpu_has_native_bf16(cpuinfo: str = "/proc/cpuinfo") -> bool | None:
     """Whether this CPU multiplies bf16 natively (AVX512-BF16 or AMX-BF16 in its flags); None where the flags
     cannot be read (not Linux). Without it oneDNN emulates bf16, and ``model.mlp_precision: bf16`` is slower
     than fp32."""
-    try:
-        with open(cpuinfo) as fh:
-            for line in fh:
-                if line.startswith("flags"):
-                    flags = set(line.split(":", 1)[1].split())
-                    return bool(flags & {"avx512_bf16", "amx_bf16"})
-    except OSError:
+    fields = cpu_fields(cpuinfo)
+    if not fields or "flags" not in fields:
         return None
-    return None
+    return bool(set(fields["flags"].split()) & {"avx512_bf16", "amx_bf16"})
