@@ -37,6 +37,11 @@ PREDATING = {"model.mlp_precision": "fp32",  # session 19
 DYNAMIC_ONLY = ("stage1.p_from_motion", "stage1.p_from_motion_logit", "stage1.p_motion_relative",
                 "stage1.p_motion_floor", "stage1.lr_mlp", "stage1.lr_mlp_final", "stage1.lr_p", "stage1.lambda_p",
                 "stage1.lambda_dc", "stage1.lambda_dmu")
+# settings only the P split reads (P = 1 for every Gaussian without it, method/model/scene.py): a run with
+# `model.separation` false (the wo_P ablation) neither compares nor hashes them, so a change to the split does
+# not set its wo_P runs apart either
+SPLIT_ONLY = ("model.p_temperature", "model.p_init_logit", "stage1.p_from_motion", "stage1.p_from_motion_logit",
+              "stage1.p_motion_relative", "stage1.p_motion_floor", "stage1.lr_p", "stage1.lambda_p")
 
 
 def identity(scene_dir: Path, light: str, seed: int, device, static: bool, train_views: list[str] | None = None) -> dict:
@@ -92,6 +97,17 @@ def _is_static(rec: dict) -> bool:
     return isinstance(rec.get("run"), dict) and rec["run"].get("static") is True
 
 
+def _ignored(rec: dict) -> set[str]:
+    """The settings that decide nothing in the run ``rec`` records: the network's and the split's in a static
+    run (its model section is left out whole), the split's in a run without the split."""
+    if _is_static(rec):
+        return set(DYNAMIC_ONLY)
+    model = rec.get("model")
+    if isinstance(model, dict) and model.get("separation") is False:
+        return set(SPLIT_ONLY)
+    return set()
+
+
 def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
     """Refuse ``what`` when a setting of the stage's sections differs from the run's record (keys that
     only one side knows are not compared: a record from an older version of the settings file)."""
@@ -99,7 +115,7 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
     if not rec:
         return
     diffs = []
-    static = _is_static(rec)
+    static, ignored = _is_static(rec), _ignored(rec)
     for sec in SECTIONS[stage]:
         if sec not in rec or sec not in cfg or (static and sec == "model"):  # a static run has no network
             continue
@@ -107,7 +123,7 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
         a = {**{k: v for k, v in PREDATING.items() if k.startswith(f"{sec}.")}, **a}
         b = _flat(cfg[sec], sec) if isinstance(cfg[sec], dict) else {sec: cfg[sec]}
         diffs += [f"{k}={a[k]!r} (this command: {b[k]!r})" for k in sorted(a.keys() & b.keys())
-                  if a[k] != b[k] and not (static and k in DYNAMIC_ONLY)]
+                  if a[k] != b[k] and k not in ignored]
     if diffs:
         more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
         raise UserError(f"{what}: {run_dir} was trained with {'; '.join(diffs[:3])}{more}: pass the run's own "
@@ -124,7 +140,8 @@ def recorded_settings(rec: dict, stage: int = 2) -> dict:
     file after the run was recorded counts at its :data:`PREDATING` value, else at its profile's value (a
     new setting's default keeps the old behaviour), so adding one does not set old runs apart. A static run
     (``run.static``) has no deformation network and no P split: the model section and the stage-1 keys of
-    :data:`DYNAMIC_ONLY` decide nothing there and are left out."""
+    :data:`DYNAMIC_ONLY` decide nothing there and are left out; a run without the split (``model.separation``
+    false), the keys of :data:`SPLIT_ONLY`."""
     known: dict = {}
     try:
         known = load_method_config(str(rec.get("profile")), [])
@@ -140,10 +157,10 @@ def recorded_settings(rec: dict, stage: int = 2) -> dict:
             flat.update(_flat(rec[sec], sec))
         else:
             flat[sec] = rec[sec]
-    static = _is_static(rec)
+    static, ignored = _is_static(rec), _ignored(rec)
     return {k: v for k, v in flat.items()
             if k.rsplit(".", 1)[-1] not in BOOKKEEPING_KEYS
-            and not (static and (k.startswith("model.") or k in DYNAMIC_ONLY))}
+            and not (static and k.startswith("model.")) and k not in ignored}
 
 
 def settings_hash(run_dir: Path) -> str | None:

@@ -306,3 +306,42 @@ def test_a_static_run_neither_hashes_nor_compares_the_p_split_settings(tmp_path)
     write_record(run, load_method_config("small", ["stage1.lr_opacity=0.5"]), identity(tmp_path / "s", "city", 0, "cpu", True))
     assert settings_hash(run) != settings_hash(tmp_path / "now_True")
     assert "stage1.lr_opacity" not in DYNAMIC_ONLY
+
+
+def test_a_run_without_the_split_neither_hashes_nor_compares_the_split_settings(tmp_path):
+    """wo_P (``model.separation`` false: P = 1 for every Gaussian) reads none of the split's settings: its
+    record with another P logit or L_P weight hashes like today's and takes stage 2 under today's, while a run
+    with the split is set apart and refused; a setting wo_P does read is still compared."""
+    import yaml
+
+    from method.config import load_method_config
+    from method.run_record import SPLIT_ONLY, check_settings, identity, settings_hash, write_record
+
+    for separation in (True, False):
+        now = load_method_config("small", [f"model.separation={str(separation).lower()}"])
+        for name, edit in (("now", None), ("logit", ("stage1", "p_from_motion_logit", 9.0)),
+                           ("lp", ("stage1", "lambda_p", 0.5)), ("temp", ("model", "p_temperature", 2.0))):
+            run = tmp_path / f"{name}_{separation}"
+            write_record(run, now, identity(tmp_path / "s", "city", 0, "cpu", False))
+            if edit:
+                rec = yaml.safe_load((run / "config.yaml").read_text())
+                assert rec[edit[0]][edit[1]] != edit[2]
+                rec[edit[0]][edit[1]] = edit[2]
+                (run / "config.yaml").write_text(yaml.safe_dump(rec, sort_keys=False))
+        h = {n: settings_hash(tmp_path / f"{n}_{separation}") for n in ("now", "logit", "lp", "temp")}
+        assert (h["now"] == h["logit"] == h["lp"] == h["temp"]) == (not separation)
+        for name, key in (("logit", "stage1.p_from_motion_logit"), ("lp", "stage1.lambda_p"),
+                          ("temp", "model.p_temperature")):
+            if separation:
+                with pytest.raises(UserError, match=key):
+                    check_settings(tmp_path / f"{name}_True", now, 2, "stage 2")
+            else:
+                check_settings(tmp_path / f"{name}_False", now, 2, "stage 2")
+    wo_p = load_method_config("small", ["model.separation=false"])
+    run = tmp_path / "opacity_False"
+    write_record(run, load_method_config("small", ["model.separation=false", "stage1.lr_opacity=0.5"]),
+                 identity(tmp_path / "s", "city", 0, "cpu", False))
+    assert settings_hash(run) != settings_hash(tmp_path / "now_False")
+    with pytest.raises(UserError, match="stage1.lr_opacity"):
+        check_settings(run, wo_p, 1, "resuming stage 1")
+    assert "stage1.lr_opacity" not in SPLIT_ONLY
