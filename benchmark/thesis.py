@@ -175,8 +175,9 @@ def chart(comparisons: Sequence[dict], path: Path, protocol: str | None = None) 
     from lumibench.io import atomic_path
 
     keys = [m for m in METRICS if m.key in PAPER_CLAIMS]
+    # one y scale for every configuration, so the panels compare by eye
     fig, axes = plt.subplots(1, len(comps), figsize=(1.2 + 4.2 * len(comps), 4.2), squeeze=False,
-                             layout="constrained")
+                             sharey=True, layout="constrained")
     colours = {"albedo.lpips": "#1f77b4", "relight.lpips": "#ff7f0e"}
     for ax, comp in zip(axes[0], comps):
         rows = [r for r in comp["scenes"] if not r["missing"]]
@@ -194,8 +195,12 @@ def chart(comparisons: Sequence[dict], path: Path, protocol: str | None = None) 
                        label=f"paper, {m.label} ({PAPER_CLAIMS[m.key]:+.0f} %)")
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xticks(range(len(names)), names, rotation=30, ha="right", rotation_mode="anchor", fontsize=8)
-        ax.set_title(f"{comp['configuration'][0]} → {comp['configuration'][1]}", fontsize=10)
-        ax.set_ylabel("change, dynamic vs static (%)\n< 0: the dynamic capture is better")
+        seeds = sorted({r["metrics"][k][side][2] for r in rows for k in r["metrics"] for side in ("dynamic", "static")})
+        seeds_note = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]}-{seeds[-1]}" if seeds else "0"
+        ax.set_title(f"{comp['configuration'][0]} → {comp['configuration'][1]}"
+                     f" ({seeds_note} seed{'s' if seeds_note != '1' else ''} per scene)", fontsize=10)
+        if ax is axes[0][0]:
+            ax.set_ylabel("change, dynamic vs static (%)\n< 0: the dynamic capture is better")
         ax.grid(alpha=0.3, axis="y")
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncols=2, fontsize=8)
