@@ -1,6 +1,6 @@
 """Compile the Numba kernels into their on-disk cache once, at `make setup`, so a user's first `make demo`
-or training does not spend its first minute compiling (20-60 s on the 2-core boxes; BENCHMARKS.md,
-"Compiled CPU backend"). Every kernel takes float64 / int64 arrays and plain scalars (raster_numba.as_f64),
+or training does not spend its first minute compiling (61 s on an idle 2-core AVX2 box; BENCHMARKS.md,
+"make demo on an idle box"). Every kernel takes float64 / int64 arrays and plain scalars (raster_numba.as_f64),
 so one call of each on a tiny scene compiles the signatures that training, relighting and the predictions
 use. ``python -m method.splat.warm``; a no-op without Numba.
 """
