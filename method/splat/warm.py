@@ -6,23 +6,10 @@ use. ``python -m method.splat.warm``; a no-op without Numba.
 """
 from __future__ import annotations
 
-import math
 import sys
 import time
 
 import torch
-
-
-def tiny_scene(n: int = 64, seed: int = 0, dtype=torch.float32):
-    """A few random splats in front of a camera (the dtype training uses, so the same conversions run)."""
-    g = torch.Generator().manual_seed(seed)
-    means = ((torch.rand(n, 3, generator=g) - 0.5) * 1.2).to(dtype)
-    quats = torch.randn(n, 4, generator=g)
-    quats = (quats / quats.norm(dim=1, keepdim=True)).to(dtype)
-    scales = torch.exp(torch.empty(n, 2).uniform_(math.log(0.05), math.log(0.3), generator=g)).to(dtype)
-    opac = torch.empty(n).uniform_(0.05, 0.95, generator=g).to(dtype)
-    feats = torch.rand(n, 3, generator=g).to(dtype)
-    return means, quats, scales, opac, feats
 
 
 def kernels() -> dict:
@@ -41,20 +28,15 @@ def warm() -> list[str]:
     tracing); return the names of the kernels now compiled. Raises ImportError without Numba."""
     import numba  # noqa: F401  (the point: nothing to warm without it)
 
-    from method.splat.camera import Camera
+    from method.splat.bench import make_scene, make_trace_queries, raster_loss
     from method.splat.rasterize import rasterize
     from method.splat.trace import TraceAccel, trace
 
-    params = [p.requires_grad_(True) for p in tiny_scene()]
-    cam = Camera.look_at((0.3, -3.5, 1.0), (0.0, 0.0, 0.0), 16, 16)
+    *params, cam = make_scene(64, 16)  # the bench's random splats: float32, as training passes them
+    params = [p.requires_grad_(True) for p in params]
     off = torch.zeros(params[0].shape[0], 2, requires_grad=True)
-    out = rasterize(*params, cam, None, screen_offsets=off, backend="numba",
-                    distortion_near=1.0, distortion_far=10.0, depth_ratio=0.3)
-    sum(getattr(out, k).sum() for k in ("features", "alpha", "normal", "depth_expected", "distortion")).backward()
-    g = torch.Generator().manual_seed(1)
-    o = (torch.rand(32, 3, generator=g) - 0.5) * 2.4
-    d = torch.randn(32, 3, generator=g)
-    d = d / d.norm(dim=1, keepdim=True)
+    raster_loss(rasterize(*params, cam, None, screen_offsets=off, backend="numba")).backward()
+    o, d = make_trace_queries(*[p.detach() for p in params[:3]], 8, 4)
     with torch.no_grad():
         accel = TraceAccel.build(*[p.detach() for p in params[:4]])
         trace(*[p.detach() for p in params[:4]], None, o, d, 0.02, accel=accel, backend="numba")  # visibility
