@@ -55,6 +55,14 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
     mean absolute log residual about the median, "mad_no_sun": the same for the sky alone}; s is the sky
     radiance for which the irradiance / pi of the most strongly lit points (the LEVEL_QUANTILE quantile) is 1.
 
+    ``radiance`` (P, 3): the texel is searched on the luminance as above, then each channel gets its own
+    ratio and ground level at that texel (and its own scale by the same rule), returned as "colour":
+    {"ratio": [3], "lower": [3], "scale": [3], "warm": the sun redder than the sky}: the sun's colour
+    against the sky's. ``fit_env`` uses it only when "warm": daylight's direct sun is warmer than the sky
+    it shines through, so a fitted sun bluer than its sky is a texel that is not the sun (measured at
+    `small`: on every scene where it happened, the fitted texel was off the ground truth's sun or there
+    is no sun; BENCHMARKS.md, session 27), and its colour would tint the albedo the wrong way.
+
     Why that level: images fix albedo x light, not either alone. Started uniform, the learned map settles
     where the most strongly lit surfaces reflect about their canonical colour (the albedo starts there and
     is clamped below albedo_max), which left the albedo 0.77-0.93 x the ground truth's at `small`; the
@@ -66,6 +74,11 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
         raise ValueError(f"weights must be (P, {height * width}), got {tuple(weights.shape)}")
     if P == 0:
         raise ValueError("no points to fit the env map to")
+    rgb = None
+    if radiance.dim() == 2:
+        if radiance.shape != (P, 3):
+            raise ValueError(f"radiance must be (P,) or (P, 3) with P = {P}, got {tuple(radiance.shape)}")
+        rgb, radiance = radiance, luminance(radiance)
     w = weights.to(torch.float64)
     log_y = radiance.to(torch.float64).clamp_min(1e-6).log()
     is_upper = torch.arange(height * width, device=w.device) // width < height // 2
@@ -74,31 +87,51 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
     rho = torch.as_tensor(ratios, dtype=torch.float64, device=w.device)
     upper = [k for k in range(height * width) if bool(is_upper[k])]
     best = None
-    for lower in lower_levels:
-        sky = sky_up + float(lower) * sky_low
-        for k in upper:
-            e = (sky + rho[None, :] * w[:, k:k + 1]).clamp_min(1e-12)  # (P, R)
-            r = e.log() - log_y[:, None]
-            mad = (r - r.median(0).values).abs().mean(0)
-            j = int(mad.argmin())
-            if best is None or float(mad[j]) < best[0]:
-                best = (float(mad[j]), k, j, float(lower), float(e[:, j].quantile(LEVEL_QUANTILE)))
+    for k in upper:
+        mad, j, lower, bright_e = _search(sky_up, sky_low, w[:, k:k + 1], log_y, rho, lower_levels)
+        if best is None or mad < best[0]:
+            best = (mad, k, j, lower, bright_e)
     mad, k, j, lower, bright_e = best
     no_sun = ((sky_up + sky_low).clamp_min(1e-12).log() - log_y[:, None])
     no_sun_mad = float((no_sun - no_sun.median(0).values).abs().mean())
-    return {"texel": (k // width, k % width), "ratio": float(rho[j]), "lower": lower,
-            "scale": math.pi / bright_e, "mad": mad, "mad_no_sun": no_sun_mad}
+    out = {"texel": (k // width, k % width), "ratio": float(rho[j]), "lower": lower,
+           "scale": math.pi / bright_e, "mad": mad, "mad_no_sun": no_sun_mad}
+    if rgb is not None:
+        per = [_search(sky_up, sky_low, w[:, k:k + 1], rgb[:, c].to(torch.float64).clamp_min(1e-6).log(), rho,
+                       lower_levels) for c in range(3)]
+        out["colour"] = {"ratio": [float(rho[p[1]]) for p in per], "lower": [p[2] for p in per],
+                         "scale": [math.pi / p[3] for p in per]}
+        out["colour"]["warm"] = out["colour"]["ratio"][0] > out["colour"]["ratio"][2]
+    return out
 
 
-def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio: float, scale: float,
-                lower: float = 1.0) -> torch.Tensor:
-    """(H, W, 3) grey map: ``scale`` on the upper hemisphere, ``scale * lower`` on the lower one,
-    ``scale * (1 + ratio)`` at ``texel``. Grey because the albedo starts from the canonical colour, which
-    holds the scene's colours: a coloured sky would tint every render at the start."""
-    env = torch.full((height, width), float(scale), dtype=torch.float32)
-    env[height // 2:] *= float(lower)
-    env[texel] = float(scale) * (1.0 + float(ratio))
-    return env[..., None].expand(height, width, 3).contiguous()
+def _search(sky_up, sky_low, w_k, log_y, rho, lower_levels) -> tuple[float, int, float, float]:
+    """Over the ground levels and ratios, the best fit of log_y (P,) by sky + rho x the texel's w_k (P, 1):
+    (mean absolute log residual about the median, the ratio's index, the ground level, the LEVEL_QUANTILE
+    quantile of that fit's irradiance)."""
+    best = None
+    for lower in lower_levels:
+        e = (sky_up + float(lower) * sky_low + rho[None, :] * w_k).clamp_min(1e-12)  # (P, R)
+        r = e.log() - log_y[:, None]
+        mad = (r - r.median(0).values).abs().mean(0)
+        j = int(mad.argmin())
+        if best is None or float(mad[j]) < best[0]:
+            best = (float(mad[j]), j, float(lower), float(e[:, j].quantile(LEVEL_QUANTILE)))
+    return best
+
+
+def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio, scale, lower=1.0) -> torch.Tensor:
+    """(H, W, 3) map: ``scale`` on the upper hemisphere, ``scale * lower`` on the lower one,
+    ``scale * (1 + ratio)`` at ``texel``; each of ratio, scale and lower one number (a grey map) or three
+    (one per channel: the fit's "colour")."""
+    def per_channel(x):
+        return torch.as_tensor(x, dtype=torch.float32).reshape(-1).expand(3)
+
+    scale, ratio, lower = per_channel(scale), per_channel(ratio), per_channel(lower)
+    env = scale.expand(height, width, 3).clone()
+    env[height // 2:] *= lower
+    env[texel] = scale * (1.0 + ratio)
+    return env.contiguous()
 
 
 @torch.no_grad()
@@ -141,8 +174,10 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
         raise ValueError("no foreground pixels in the training views to fit the env map to")
     rgb = torch.cat(radiance)
     # a small dense search (one candidate sun per upper texel): on the CPU, not as hundreds of GPU launches
-    fit = fit_sun_sky(torch.cat(weights).cpu(), luminance(rgb).cpu(), H, W)
-    env = sun_sky_map(H, W, fit["texel"], fit["ratio"], fit["scale"], fit["lower"]).to(dev)
+    coloured = bool(s2["env_fit_colour"])
+    fit = fit_sun_sky(torch.cat(weights).cpu(), (rgb if coloured else luminance(rgb)).cpu(), H, W)
+    c = fit["colour"] if coloured and fit["colour"]["warm"] else fit  # see fit_sun_sky on "warm"
+    env = sun_sky_map(H, W, fit["texel"], c["ratio"], c["scale"], c["lower"]).to(dev)
     record = {**fit, "texel": list(fit["texel"]), "points": int(rgb.shape[0]),
               "views": len(weights), "rays": rays, "seconds": time.perf_counter() - t0,
               "cpu_seconds": time.process_time() - c0}

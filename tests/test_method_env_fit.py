@@ -62,6 +62,42 @@ def test_fit_finds_the_sun_texel_and_ratio_through_texture_noise():
     assert int(env[..., 0].argmax()) == 3 * W + 11
 
 
+def test_coloured_fit_recovers_the_suns_colour_against_the_skys():
+    """A warm sun over a blue sky (sunrise's chroma: sun / sky per channel 1.5 : 1 : 0.5 of the luminance
+    ratio) and a grey ground: each channel's ratio recovered within the grid's step, and the map's sun, sky
+    and ground carry those colours. A grey fit would give all three channels one ratio (chroma 1 : 1 : 1)."""
+    sky = torch.tensor([0.7, 1.0, 1.3])
+    sun = 60.0 * torch.tensor([1.5, 1.0, 0.5])
+    w, _ = _synthetic_scene((3, 11), 80.0, seed=2)
+    g = torch.Generator().manual_seed(3)
+    n = w.shape[0]  # texture: +-35 % in brightness, +-10 % per channel about 0.4
+    albedo = torch.exp(0.3 * torch.randn(n, 1, generator=g) + 0.1 * torch.randn(n, 3, generator=g)) * 0.4
+    env = sky.expand(H * W, 3).clone()
+    env[3 * W + 11] += sun
+    rgb = albedo * (w @ env) / math.pi
+    fit = fit_sun_sky(w, rgb, H, W)
+    assert tuple(fit["texel"]) == (3, 11)
+    want = sun / sky  # each channel's sun-to-sky ratio: 128.6, 60, 23.1
+    got = torch.tensor(fit["colour"]["ratio"])
+    assert ((got / want).log10().abs() < 0.15).all(), (got, want)
+    c = fit["colour"]
+    m = sun_sky_map(H, W, tuple(fit["texel"]), c["ratio"], c["scale"], c["lower"])
+    sky_fit = m[0, 0] / m[0, 0].mean()
+    assert torch.allclose(sky_fit, sky / sky.mean(), rtol=0.2), sky_fit  # blue sky
+    sun_fit = m[3, 11] / m[3, 11].mean()
+    assert sun_fit[0] > sun_fit[1] > sun_fit[2]  # warm sun
+    e = (w @ m.reshape(-1, 3)) / math.pi
+    assert torch.allclose(e.quantile(0.99, dim=0), torch.ones(3), rtol=0.02)  # each channel's level
+    grey = sun_sky_map(H, W, tuple(fit["texel"]), fit["ratio"], fit["scale"], fit["lower"])
+    assert torch.equal(grey[..., 0], grey[..., 2])  # one number each: a grey map, as before
+    assert c["warm"]
+    with pytest.raises(ValueError, match="radiance must be"):
+        fit_sun_sky(w, rgb[:, :2], H, W)
+    env = sky.flip(0).expand(H * W, 3).clone()  # a blue sun over a warm sky: not daylight's sun, not used
+    env[3 * W + 11] += sun.flip(0)
+    assert not fit_sun_sky(w, albedo * (w @ env) / math.pi, H, W)["colour"]["warm"]
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_fit_on_cuda_tensors_equals_the_cpu_fit():
@@ -90,7 +126,7 @@ def test_fit_of_a_sunless_sky_puts_no_strong_sun_anywhere():
         fit_sun_sky(w[:0], y[:0], H, W)
 
 
-def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path):
+def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path, monkeypatch):
     import json
     import shutil
 
@@ -107,8 +143,9 @@ def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path):
     (run / "checkpoints").mkdir(parents=True)
     shutil.copy(checkpoint_paths(src, 1)[-1][1], run / "checkpoints")
     shutil.copy(src / "config.yaml", run / "config.yaml")
-    cfg = load_method_config("ci", TINY + ["stage2.iterations=2", "stage2.env_init_fit=true", "stage2.env_fit_views=2",
-                                           "stage2.env_fit_pixels=32", "stage2.env_fixed=true"])
+    cfg_args = TINY + ["stage2.iterations=2", "stage2.env_init_fit=true", "stage2.env_fit_views=2",
+                       "stage2.env_fit_pixels=32", "stage2.env_fixed=true"]
+    cfg = load_method_config("ci", cfg_args)
     train_stage2(ci_dataset, "city", run, cfg, seed=0, progress=False)
     first = json.loads((run / "log_stage2.jsonl").read_text().splitlines()[0])["env_fit"]
     assert first["views"] == 2 and first["points"] == 64 and first["rays"] > 0
@@ -116,6 +153,38 @@ def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path):
     want = sun_sky_map(H, W, tuple(first["texel"]), first["ratio"], first["scale"], first["lower"])
     assert torch.allclose(env, want, rtol=1e-5)  # fixed: the fitted map itself
     assert json.loads((run / "timings.json").read_text())["stage2"]["env_fit_seconds"] > 0
+    assert torch.equal(env[..., 0], env[..., 2])  # grey unless asked for colour
+
+    coloured = tmp_path / "coloured"  # the same stage 1, each channel its own sun-to-sky ratio and ground
+    (coloured / "checkpoints").mkdir(parents=True)
+    shutil.copy(checkpoint_paths(src, 1)[-1][1], coloured / "checkpoints")
+    shutil.copy(src / "config.yaml", coloured / "config.yaml")
+    import method.env_fit as env_fit
+
+    real_fit, fits = env_fit.fit_sun_sky, []
+
+    def fit_as_if(warm):  # the real fit, its sun declared warm or not: which map stage 2 starts from
+        def fit(weights, radiance, h, w):
+            out = real_fit(weights, radiance, h, w)
+            out["colour"] = {"ratio": [40.0, 20.0, 10.0], "lower": [0.5, 0.3, 0.2], "scale": [0.2, 0.3, 0.4],
+                             "warm": warm}
+            fits.append(out)
+            return out
+        return fit
+
+    for warm in (True, False):
+        monkeypatch.setattr(env_fit, "fit_sun_sky", fit_as_if(warm))
+        shutil.rmtree(coloured / "checkpoints")
+        (coloured / "checkpoints").mkdir()
+        shutil.copy(checkpoint_paths(src, 1)[-1][1], coloured / "checkpoints")
+        train_stage2(ci_dataset, "city", coloured,
+                     load_method_config("ci", [*cfg_args, "stage2.env_fit_colour=true"]), seed=0, progress=False)
+        fit = fits[-1]
+        assert list(fit["texel"]) == first["texel"] and fit["ratio"] == first["ratio"]  # the luminance search
+        env = load_checkpoint(checkpoint_paths(coloured, 2)[-1][1], "cpu")["materials"]["env"]["log_radiance"].exp()
+        c = fit["colour"]
+        coloured_map = sun_sky_map(H, W, tuple(fit["texel"]), c["ratio"], c["scale"], c["lower"])
+        assert torch.allclose(env, coloured_map if warm else want, rtol=1e-5)  # a sun bluer than its sky: grey
 
 
 def _floor_scene(jitter: float):
