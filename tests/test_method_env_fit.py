@@ -260,7 +260,8 @@ def test_the_fit_traces_from_lifted_points_as_shading_does(monkeypatch):
 
     def fake_fit(weights, radiance, h, w):
         captured["w"] = weights
-        return {"texel": (0, 0), "ratio": 1.0, "scale": 1.0, "lower": 1.0}
+        return {"texel": (0, 0), "ratio": 1.0, "scale": 1.0, "lower": 1.0,
+                "colour": {"ratio": [1.0] * 3, "scale": [1.0] * 3, "lower": [1.0] * 3, "warm": False}}
 
     monkeypatch.setattr(env_fit, "fit_sun_sky", fake_fit)
     texel = 7 * W + 5  # just above the horizon
