@@ -62,7 +62,7 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
     it shines through, so a fitted sun bluer than its sky is a texel that is not the sun (measured at
     `small`: on every scene where it happened, the fitted texel was off the ground truth's sun or there
     is no sun; BENCHMARKS.md, session 27), and its colour would tint the albedo the wrong way. The ground
-    stays grey: fitted per channel, its level sat at the grid's ends in 11 of 14 fits and came out cyan
+    stays grey: fitted per channel, its level sat at the grid's ends in 13 of 14 fits and came out cyan
     under city (albedo LPIPS +8 % on jumpingjacks; session 27).
 
     Why that level: images fix albedo x light, not either alone. Started uniform, the learned map settles
