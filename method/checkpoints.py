@@ -16,6 +16,7 @@ from lumibench.io import atomic_path
 from method.model.deform import DeformNet
 from method.model.gaussians import Gaussians
 from method.model.materials import Materials
+from method.model.nodes import MotionNodes
 from method.model.scene import DynamicScene
 
 KEEP = 2  # checkpoints kept per stage
@@ -59,7 +60,7 @@ def scene_state(scene: DynamicScene) -> dict:
     """The model part of a checkpoint."""
     return {"gaussians": scene.g.state(), "net": None if scene.net is None else scene.net.state_dict(),
             "center": scene.center.cpu(), "extent": scene.extent, "temperature": scene.temperature,
-            "model": dict(scene.model_cfg)}
+            "model": dict(scene.model_cfg), "nodes": None if scene.nodes is None else scene.nodes.state()}
 
 
 def build_net(m: dict) -> DeformNet:
@@ -80,6 +81,8 @@ def scene_from_checkpoint(ck: dict, cfg: dict, device) -> DynamicScene:
     scene = DynamicScene(g, net, ck["center"].to(device), ck["extent"], ck["temperature"], m["delta_colour"],
                          m["separation"])
     scene.model_cfg = dict(m)
+    if net is not None and ck.get("nodes") is not None:
+        scene.nodes = MotionNodes.from_state(ck["nodes"], device)
     return scene
 
 

@@ -134,6 +134,9 @@ def _validate(cfg: dict) -> None:
     if m["mlp_precision"] not in PRECISIONS:
         raise UserError(f"key 'model.mlp_precision' must be one of {', '.join(PRECISIONS)} "
                         f"(got {m['mlp_precision']!r})")
+    if not isinstance(m["deform_nodes"], int) or isinstance(m["deform_nodes"], bool) or m["deform_nodes"] < 0:
+        raise UserError(f"key 'model.deform_nodes' must be an integer >= 0 (0: the network at every Gaussian; "
+                        f"got {m['deform_nodes']!r})")
     if m["p_temperature"] <= 0:
         raise UserError(f"key 'model.p_temperature' must be positive (got {m['p_temperature']})")
     if s["init_points"] < 1:

@@ -31,7 +31,8 @@ SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "
 # every new key here.
 PREDATING = {"model.mlp_precision": "fp32",  # session 19
              "stage1.p_motion_floor": 0.0,  # session 20
-             "stage2.env_fit_colour": False}  # session 27
+             "stage2.env_fit_colour": False,  # session 27
+             "model.deform_nodes": 0}  # session 28
 # stage-1 settings only the deformation network and the P split read (method/stage1.py: the split runs only
 # when the scene is not static, the network's optimiser and the dynamic loss terms only when it has one): a
 # static run neither compares nor hashes them, so a change to the split does not set its static runs apart

@@ -15,6 +15,7 @@ from method.checkpoints import build_net, scene_from_checkpoint, scene_state
 from method.data import SceneData
 from method.model.density import DensityStats, densify_and_prune, reset_opacity
 from method.model.gaussians import GaussianAdam, Gaussians
+from method.model.nodes import REFRESH_EVERY, MotionNodes
 from method.model.scene import Deformed, DynamicScene, render
 from method.outputs import stage1_outputs
 from method.schedules import expon_lr
@@ -43,12 +44,12 @@ def motion_rms(scene: DynamicScene, times: list[float]) -> tuple[torch.Tensor, t
     scene extent; and the time-mean offset and rotation delta. Running float64 sums, so memory stays one
     row per Gaussian whatever the number of times (150 times x 300k Gaussians at `full`)."""
     g = scene.g
-    x = (g.means - scene.center.to(g.means)) / scene.extent
+    x = scene.normalised(g.means)
     s_mu = torch.zeros(g.means.shape, dtype=torch.float64, device=g.means.device)
     s_sq = torch.zeros(len(g), dtype=torch.float64, device=g.means.device)
     s_rot = torch.zeros(g.quats.shape, dtype=torch.float64, device=g.quats.device)
     for t in times:
-        d_mu, d_rot, _ = scene.net(x, float(t))
+        d_mu, d_rot, _ = scene.field(x, float(t))
         d_mu = d_mu.double()
         s_mu += d_mu
         s_sq += (d_mu * d_mu).sum(-1)
@@ -178,11 +179,11 @@ def on_moving_objects(scene: DynamicScene, views) -> torch.Tensor | None:
     if scene.net is None or not views or any(v.dynamic_mask is None for v in views):
         return None
     g = scene.g
-    x = (g.means - scene.center.to(g.means)) / scene.extent
+    x = scene.normalised(g.means)
     on = torch.zeros(len(g), device=g.means.device)
     seen = torch.zeros(len(g), device=g.means.device)
     for v in views:
-        d_mu, _, _ = scene.net(x, float(v.time))
+        d_mu, _, _ = scene.field(x, float(v.time))
         xi, yi, ok = pixel_of(g.means + d_mu.to(g.means), v.camera)
         m = v.dynamic_mask.to(g.means.device)
         on += (ok & (m[yi.to(m.device), xi.to(m.device)] > 0.5)).float()
@@ -277,6 +278,8 @@ def build_scene(data: SceneData, cfg: dict, static: bool, gen: torch.Generator, 
     scene = DynamicScene(g, net, data.center.to(device), data.extent, m["p_temperature"], m["delta_colour"],
                          m["separation"])
     scene.model_cfg = dict(m)
+    if net is not None and m["deform_nodes"]:
+        scene.nodes = MotionNodes(m["deform_nodes"])
     return scene
 
 
@@ -384,6 +387,8 @@ class Stage1:
                 info["check"] = split_check(moving, scene.g.t["p_logit"] < 0)
             self.gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())
             log({"iteration": it, "p_from_motion": info})
+        if scene.nodes is not None and it % REFRESH_EVERY == 0:
+            scene.refresh_nodes()  # the means drift; a count change re-chooses them on its own
         warm = it <= s["warmup"]
         d = scene.deform(view.time, p_mode="ones" if warm else "sample", generator=gen)
         timer.lap("deform")

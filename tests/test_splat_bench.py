@@ -31,11 +31,14 @@ def test_bench_scene_is_deterministic_and_plausible():
     assert o.shape == (128, 3) and torch.allclose(d.norm(dim=1), torch.ones(128))
 
 
-def test_deform_bench_times_both_precisions_on_the_profiles_network(tmp_path):
+def test_deform_bench_times_both_precisions_and_the_nodes_on_the_profiles_network(tmp_path):
     from method.model.bench import main
 
     out = tmp_path / "deform.json"
-    assert main(["--out", str(out), "--profile", "ci", "--gaussians", "300", "--repeats", "2", "--threads", "1"]) == 0
+    assert main(["--out", str(out), "--profile", "ci", "--gaussians", "300", "--repeats", "2", "--threads", "1",
+                 "--nodes", "40"]) == 0
     res = json.loads(out.read_text())
-    assert set(res["seconds"]) == {"fp32", "bf16"} and res["architecture"]["mlp_width"] == 64  # ci's width
+    assert set(res["seconds"]) == {"fp32", "bf16", "fp32_nodes40"} and res["architecture"]["mlp_width"] == 64  # ci's width
     assert res["bf16_speedup"] == pytest.approx(res["seconds"]["fp32"] / res["seconds"]["bf16"])
+    assert res["nodes_speedup"] == pytest.approx(res["seconds"]["fp32"] / res["seconds"]["fp32_nodes40"])
+    assert res["nodes_choose_seconds"] > 0

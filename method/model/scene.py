@@ -11,6 +11,7 @@ from method import buffers
 from method.buffers import STAGE1
 from method.model.deform import DeformNet, binary_concrete
 from method.model.gaussians import Gaussians
+from method.model.nodes import MotionNodes
 from method.splat.camera import Camera
 from method.splat.rasterize import RasterOutput, rasterize
 
@@ -40,10 +41,30 @@ class DynamicScene:
         self.delta_colour = bool(delta_colour)  # False: the wo_dc ablation
         self.separation = bool(separation)      # False: the wo_P ablation (P = 1 always)
         self.model_cfg: dict = {}                # the config's model section, saved in checkpoints
+        self.nodes: MotionNodes | None = None    # where the network is read (model.deform_nodes; None: every Gaussian)
 
     @property
     def static(self) -> bool:
         return self.net is None
+
+    def normalised(self, means: torch.Tensor) -> torch.Tensor:
+        """Positions as the network reads them: the scene box mapped to about [-1, 1]."""
+        return (means - self.center.to(means)) / self.extent
+
+    def refresh_nodes(self) -> None:
+        """Re-choose the nodes from the current canonical means (no-op without nodes)."""
+        if self.nodes is not None:
+            self.nodes.choose(self.normalised(self.g.means))
+
+    def field(self, x: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(d mu, d r, d c) at the normalised positions ``x`` (one row per Gaussian) and time ``t``: the
+        network at every row, or at the nodes blended to every row (method/model/nodes.py)."""
+        if self.nodes is None:
+            return self.net(x, t)
+        if self.nodes.stale(x.shape[0]):
+            self.nodes.choose(x)
+        w = self.nodes.weights(x)
+        return tuple(self.nodes.blend(v, w) for v in self.net(self.nodes.nodes, t))
 
     def p_inference(self) -> torch.Tensor:
         return binary_concrete(self.g.t["p_logit"], self.temperature, training=False)
@@ -71,9 +92,9 @@ class DynamicScene:
             p = means.new_ones(n)
         else:
             p = self.p_inference()
-        x = (means - self.center.to(means)) / self.extent
+        x = self.normalised(means)
         if trunk_cache is None:
-            d_mu, d_rot, d_col = self.net(x, t)
+            d_mu, d_rot, d_col = self.field(x, t)
         else:
             trainable = [n for n, q in self.net.named_parameters() if q.requires_grad and not n.startswith("d_col.")]
             if means.requires_grad or trainable:
@@ -82,10 +103,18 @@ class DynamicScene:
             key = float(t)
             if key not in trunk_cache:
                 with torch.no_grad():
-                    h = self.net.trunk(x, t)
-                    trunk_cache[key] = (h, *self.net.heads(h)[:2])
-            h, d_mu, d_rot = trunk_cache[key]
+                    if self.nodes is None:
+                        h, w = self.net.trunk(x, t), None
+                        trunk_cache[key] = (h, *self.net.heads(h)[:2], w)
+                    else:
+                        if self.nodes.stale(n):
+                            self.nodes.choose(x)
+                        h, w = self.net.trunk(self.nodes.nodes, t), self.nodes.weights(x)
+                        trunk_cache[key] = (h, *(self.nodes.blend(v, w) for v in self.net.heads(h)[:2]), w)
+            h, d_mu, d_rot, w = trunk_cache[key]
             d_col = self.net.heads(h)[2]  # the heads' one product, as uncached (the frozen ones cost nothing)
+            if w is not None:
+                d_col = self.nodes.blend(d_col, w)
         if not self.delta_colour:
             d_col = torch.zeros_like(d_col)
         pc = p[:, None]

@@ -1,0 +1,106 @@
+"""The deformation field read at a few sample points (nodes) and blended to every Gaussian.
+
+Why: the network's forward and backward at every Gaussian is about two thirds of a `small` stage-1
+iteration on the CPU (BENCHMARKS.md). The field it learns is smooth in space (a 6-frequency encoding of
+the canonical position), so evaluating it at M nodes spread over the Gaussians and blending the K
+nearest nodes' outputs at each Gaussian gives nearly the same field for a tenth of the products (the
+control-point idea of SC-GS, Huang et al. 2024, with the paper's network as the field: the nodes are
+only where it is read, so re-choosing them does not change what was learned).
+
+Nodes: farthest-point sampling of the canonical means (a deterministic start), re-chosen whenever the
+Gaussian count changes and every ``REFRESH_EVERY`` stage-1 iterations (the means drift). Each Gaussian's
+K nearest nodes are fixed between re-choices; the blend weights are a softmax of -d^2 / (2 sigma_j^2) over
+them, computed from the current means at every call, so positions keep a gradient through the weights as
+they had one through the encoding. sigma_j: the mean distance from node j to its 3 nearest nodes.
+"""
+from __future__ import annotations
+
+import torch
+
+K_NEIGHBOURS = 4      # nodes blended at each Gaussian (SC-GS: 4)
+REFRESH_EVERY = 500   # stage-1 iterations between re-choices of the nodes (also at every count change)
+
+
+@torch.no_grad()
+def farthest_points(x: torch.Tensor, m: int) -> torch.Tensor:
+    """Indices of ``m`` rows of ``x`` (N, D) by farthest-point sampling from row 0 (all rows if m >= N).
+    Squared distances as |x|^2 - 2 x.x_last + |x_last|^2: one matrix-vector product per pick (at `small`,
+    20k means and 4,096 picks, about a second on one core; direct differences took several times that)."""
+    n = x.shape[0]
+    if m >= n:
+        return torch.arange(n, device=x.device)
+    idx = torch.empty(m, dtype=torch.long, device=x.device)
+    sq = (x * x).sum(-1)
+    dist = torch.full((n,), float("inf"), dtype=x.dtype, device=x.device)
+    last = 0
+    for i in range(m):
+        idx[i] = last
+        torch.minimum(dist, sq - 2.0 * (x @ x[last]) + sq[last], out=dist)
+        last = int(dist.argmax())
+    return idx
+
+
+@torch.no_grad()
+def nearest(x: torch.Tensor, nodes: torch.Tensor, k: int, chunk: int = 8192) -> tuple[torch.Tensor, torch.Tensor]:
+    """(distances, indices) of the ``k`` nearest ``nodes`` to each row of ``x``, nearest first, chunked."""
+    k = min(k, nodes.shape[0])
+    ds, ix = [], []
+    for i in range(0, x.shape[0], chunk):
+        d = torch.cdist(x[i:i + chunk], nodes)
+        v, j = d.topk(k, largest=False)
+        ds.append(v)
+        ix.append(j)
+    return torch.cat(ds), torch.cat(ix)
+
+
+class MotionNodes:
+    """Where the deformation field is read (``count`` nodes) and how each Gaussian blends them."""
+
+    def __init__(self, count: int):
+        if count < 1:
+            raise ValueError(f"MotionNodes needs at least one node (got {count})")
+        self.count = int(count)
+        self.nodes: torch.Tensor | None = None   # (M, 3) normalised canonical positions
+        self.sigma: torch.Tensor | None = None   # (M,)
+        self.index: torch.Tensor | None = None   # (N, K) each Gaussian's nearest nodes
+
+    def stale(self, n: int) -> bool:
+        return self.index is None or self.index.shape[0] != n
+
+    @torch.no_grad()
+    def choose(self, x: torch.Tensor) -> None:
+        """Nodes from the normalised canonical means ``x`` (N, 3); each row's nearest nodes."""
+        x = x.detach()
+        nodes = x[farthest_points(x, self.count)].clone()
+        m = nodes.shape[0]
+        if m > 1:
+            d, _ = nearest(nodes, nodes, min(4, m))
+            sigma = d[:, 1:].mean(-1)  # column 0 is the node itself
+        else:
+            sigma = torch.ones(1, dtype=x.dtype, device=x.device)
+        self.nodes, self.sigma = nodes, sigma.clamp_min(1e-6)
+        self.index = nearest(x, nodes, K_NEIGHBOURS)[1]
+
+    def weights(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, K) blend weights of each row of ``x`` over its nearest nodes (rows sum to 1)."""
+        nb = self.nodes[self.index]                       # (N, K, 3)
+        d2 = ((x[:, None, :] - nb) ** 2).sum(-1)          # (N, K)
+        s = self.sigma[self.index]
+        return torch.softmax(-d2 / (2.0 * s * s), dim=-1)
+
+    def blend(self, values: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """(N, C): each row's weighted sum of its nodes' ``values`` (M, C)."""
+        return (values[self.index] * w[..., None]).sum(1)
+
+    def state(self) -> dict:
+        return {"count": self.count, "nodes": None if self.nodes is None else self.nodes.cpu(),
+                "sigma": None if self.sigma is None else self.sigma.cpu(),
+                "index": None if self.index is None else self.index.cpu()}
+
+    @staticmethod
+    def from_state(st: dict, device) -> "MotionNodes":
+        mn = MotionNodes(st["count"])
+        for k in ("nodes", "sigma", "index"):
+            if st.get(k) is not None:
+                setattr(mn, k, st[k].to(device))
+        return mn
