@@ -1,6 +1,6 @@
 """The deformation field read at nodes (model.deform_nodes, method/model/nodes.py): the farthest points and
-the blend against brute-force references, the scene's field and stage 2's cached path with nodes, the
-nodes through a checkpoint, resume equality, and the setting's validation."""
+the blend against brute-force references, the scene's field (stage 2's cached path with nodes:
+tests/test_method_stage1.py), the nodes through a checkpoint, resume equality, and the setting's validation."""
 from __future__ import annotations
 
 import shutil
@@ -89,27 +89,6 @@ def test_field_with_nodes_is_the_network_at_the_nodes_blended():
     fewer = x[:40]
     sc.field(fewer, 0.3)
     assert sc.nodes.index.shape == (40, K_NEIGHBOURS) and int(sc.nodes.index.max()) < 12
-
-
-def test_stage2_trunk_cache_with_nodes_equals_the_uncached_field():
-    """Stage 2's per-time cache (trunk at the nodes, blended motion, weights kept) gives the same Gaussians and
-    colour-head gradients as the uncached field."""
-    from method.stage2 import freeze_geometry
-
-    sc = _scene(nodes=15)
-    head = freeze_geometry(sc)
-    cache: dict = {}
-    for t in (0.25, 0.25, 0.75):
-        outs = []
-        for c in (None, cache):
-            for p in head:
-                p.grad = None
-            d = sc.deform(t, p_mode="inference", trunk_cache=c)
-            (d.colours.sum() + 0.3 * d.means.sum() + d.quats.sum()).backward()
-            outs.append([d.means, d.quats, d.colours] + [p.grad.clone() for p in head])
-        for a, b in zip(*outs):
-            assert torch.allclose(a, b, atol=1e-12)
-    assert sorted(cache) == [0.25, 0.75]
 
 
 def test_nodes_travel_with_the_checkpoint():

@@ -729,13 +729,17 @@ def test_ci_run_of_spheres_learns(ci_dataset, tmp_path):
     assert psnr_same > psnr_rot, (psnr_same, psnr_rot)  # the sun where it was fitted: worse turned round
 
 
-def test_stage2_trunk_cache_gives_the_same_deformation_and_head_gradients(monkeypatch):
+@pytest.mark.parametrize("nodes", [0, 15])
+def test_stage2_trunk_cache_gives_the_same_deformation_and_head_gradients(monkeypatch, nodes):
     """Stage 2 keeps the frozen trunk's features per time: the same Gaussians and colour-head gradients as
-    running the whole network, the trunk run once per time, and a refusal while the trunk still trains."""
+    running the whole network, the trunk run once per time, and a refusal while the trunk still trains;
+    with the network read at nodes too (the trunk at the nodes, the blended motion and the weights kept)."""
+    from method.model.nodes import MotionNodes
     from method.stage2 import freeze_geometry
 
     scene = _tiny_scene()
     _randomise_heads(scene.net)
+    scene.nodes = MotionNodes(nodes) if nodes else None
     head = freeze_geometry(scene)
     cache: dict = {}
     calls = []
