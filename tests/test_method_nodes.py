@@ -91,6 +91,28 @@ def test_field_with_nodes_is_the_network_at_the_nodes_blended():
     assert sc.nodes.index.shape == (40, K_NEIGHBOURS) and int(sc.nodes.index.max()) < 12
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_nodes_on_cuda_match_the_cpu():
+    """The same nodes, neighbours, weights and field on a GPU as on the CPU (float64): the farthest-point loop
+    and the chunked neighbour search keep every tensor on the means' device."""
+    x = _points(3000, seed=4)
+    cpu, gpu = MotionNodes(200), MotionNodes(200)
+    cpu.choose(x)
+    gpu.choose(x.cuda())
+    assert gpu.nodes.is_cuda and gpu.index.is_cuda
+    assert torch.equal(gpu.index.cpu(), cpu.index) and torch.allclose(gpu.nodes.cpu(), cpu.nodes, atol=0)
+    moved = x + 0.01 * _points(3000, seed=5)
+    assert torch.allclose(gpu.weights(moved.cuda()).cpu(), cpu.weights(moved), atol=1e-12)
+    sc, sc_gpu = _scene(n=500, nodes=40), _scene(n=500, nodes=40)
+    sc_gpu.g = Gaussians({k: v.cuda() for k, v in sc_gpu.g.t.items()})
+    sc_gpu.net.load_state_dict(sc.net.state_dict())  # the trunk's initialisation draws from the global generator
+    sc_gpu.net, sc_gpu.center = sc_gpu.net.cuda(), sc_gpu.center.cuda()
+    a, b = sc.deform(0.7), sc_gpu.deform(0.7)
+    assert sc_gpu.nodes.index.is_cuda and torch.equal(sc_gpu.nodes.index.cpu(), sc.nodes.index)
+    for k in ("means", "quats", "colours"):
+        assert torch.allclose(getattr(a, k), getattr(b, k).cpu(), atol=1e-10), k
+
+
 def test_nodes_travel_with_the_checkpoint():
     """scene_state -> scene_from_checkpoint keeps the nodes, so a stage-2 or relight load deforms as trained."""
     from method.checkpoints import scene_from_checkpoint, scene_state
