@@ -13,6 +13,12 @@ Gaussian count changes and every ``REFRESH_EVERY`` stage-1 iterations (the means
 K nearest nodes are fixed between re-choices; the blend weights are a softmax of -d^2 / (2 sigma_j^2) over
 them, computed from the current means at every call, so positions keep a gradient through the weights as
 they had one through the encoding. sigma_j: the mean distance from node j to its 3 nearest nodes.
+
+The choice and the neighbours are taken in the joint space of position and motion (``DynamicScene`` passes
+each Gaussian's offsets at five times about their mean, from the network as it stands): a small object that
+moves unlike the ground it touches gets nodes of its own and blends only them, where by position alone its
+Gaussians blended the ground's nodes and trailed along its path (BENCHMARKS.md, session 29: the mouse's
+stage-1 moving-object PSNR +1.9 dB).
 """
 from __future__ import annotations
 
@@ -66,28 +72,39 @@ class MotionNodes:
         self.nodes: torch.Tensor | None = None   # (M, 3) normalised canonical positions
         self.sigma: torch.Tensor | None = None   # (M,)
         self.index: torch.Tensor | None = None   # (N, K) each Gaussian's nearest nodes
+        self.motion: torch.Tensor | None = None  # (N, D) each Gaussian's motion descriptor at the choice (or None)
+        self.node_motion: torch.Tensor | None = None  # (M, D) the nodes' descriptors
 
     def stale(self, n: int) -> bool:
         return self.index is None or self.index.shape[0] != n
 
     @torch.no_grad()
-    def choose(self, x: torch.Tensor) -> None:
-        """Nodes from the normalised canonical means ``x`` (N, 3); each row's nearest nodes."""
+    def choose(self, x: torch.Tensor, motion: torch.Tensor | None = None) -> None:
+        """Nodes from the normalised canonical means ``x`` (N, 3); each row's nearest nodes. ``motion`` (N, D):
+        each row's motion descriptor (its offsets at a few times about their mean, normalised like ``x``); the
+        choice and the neighbours are then taken in the joint space of position and motion, so a small object
+        that moves unlike the ground beside it gets nodes of its own and blends only them."""
         x = x.detach()
-        nodes = x[farthest_points(x, self.count)].clone()
-        m = nodes.shape[0]
+        feat = x if motion is None else torch.cat([x, motion.detach().to(x)], -1)
+        pick = farthest_points(feat, self.count)
+        nodes_f = feat[pick].clone()
+        m = nodes_f.shape[0]
         if m > 1:
-            d, _ = nearest(nodes, nodes, min(4, m))
+            d, _ = nearest(nodes_f, nodes_f, min(4, m))
             sigma = d[:, 1:].mean(-1)  # column 0 is the node itself
         else:
             sigma = torch.ones(1, dtype=x.dtype, device=x.device)
-        self.nodes, self.sigma = nodes, sigma.clamp_min(1e-6)
-        self.index = nearest(x, nodes, K_NEIGHBOURS)[1]
+        self.nodes, self.sigma = nodes_f[:, :3].contiguous(), sigma.clamp_min(1e-6)
+        self.motion = None if motion is None else motion.detach().to(x).clone()
+        self.node_motion = None if motion is None else nodes_f[:, 3:].contiguous()
+        self.index = nearest(feat, nodes_f, K_NEIGHBOURS)[1]
 
     def weights(self, x: torch.Tensor) -> torch.Tensor:
         """(N, K) blend weights of each row of ``x`` over its nearest nodes (rows sum to 1)."""
         nb = self.nodes[self.index]                       # (N, K, 3)
         d2 = ((x[:, None, :] - nb) ** 2).sum(-1)          # (N, K)
+        if self.motion is not None:
+            d2 = d2 + ((self.motion[:, None, :] - self.node_motion[self.index]) ** 2).sum(-1)
         s = self.sigma[self.index]
         return torch.softmax(-d2 / (2.0 * s * s), dim=-1)
 
@@ -96,14 +113,13 @@ class MotionNodes:
         return (values[self.index] * w[..., None]).sum(1)
 
     def state(self) -> dict:
-        return {"count": self.count, "nodes": None if self.nodes is None else self.nodes.cpu(),
-                "sigma": None if self.sigma is None else self.sigma.cpu(),
-                "index": None if self.index is None else self.index.cpu()}
+        return {"count": self.count, **{k: None if getattr(self, k) is None else getattr(self, k).cpu()
+                                        for k in ("nodes", "sigma", "index", "motion", "node_motion")}}
 
     @staticmethod
     def from_state(st: dict, device) -> "MotionNodes":
         mn = MotionNodes(st["count"])
-        for k in ("nodes", "sigma", "index"):
+        for k in ("nodes", "sigma", "index", "motion", "node_motion"):
             if st.get(k) is not None:
                 setattr(mn, k, st[k].to(device))
         return mn
