@@ -33,20 +33,20 @@ REFRESH_EVERY = 500   # stage-1 iterations between re-choices of the nodes (also
 def farthest_points(x: torch.Tensor, m: int) -> torch.Tensor:
     """Indices of ``m`` rows of ``x`` (N, D) by farthest-point sampling from row 0 (all rows if m >= N).
     Squared distances as |x|^2 - 2 x.x_last + |x_last|^2: one matrix-vector product per pick (at `small`,
-    20k means and 4,096 picks, about a second on one core beside two trainings). The last pick stays a
-    device tensor: reading it on the host each pick made a GPU wait 4,096 times per choice (2.4-2.9 s per
-    choice on an H200, against about 0.5 s per 10 iterations; BENCHMARKS.md, session 29)."""
+    20k means and 4,096 picks, about a second on one core beside two trainings). Each pick is read on the
+    host: keeping it a device tensor instead was timed on an idle H200 and gained nothing (0.43 s against
+    0.40 s per 4,096 picks of 20k points; BENCHMARKS.md, session 30)."""
     n = x.shape[0]
     if m >= n:
         return torch.arange(n, device=x.device)
     idx = torch.empty(m, dtype=torch.long, device=x.device)
     sq = (x * x).sum(-1)
     dist = torch.full((n,), float("inf"), dtype=x.dtype, device=x.device)
-    last = torch.zeros((), dtype=torch.long, device=x.device)
+    last = 0
     for i in range(m):
         idx[i] = last
         torch.minimum(dist, sq - 2.0 * (x @ x[last]) + sq[last], out=dist)
-        last = dist.argmax()
+        last = int(dist.argmax())
     return idx
 
 
