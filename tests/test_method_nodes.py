@@ -8,6 +8,7 @@ import shutil
 import pytest
 import torch
 
+from lumibench.errors import UserError
 from method.model.deform import DeformNet
 from method.model.gaussians import Gaussians
 from method.model.nodes import K_NEIGHBOURS, MotionNodes, farthest_points
@@ -156,48 +157,20 @@ def test_resume_with_nodes_equals_an_uninterrupted_run(ci_dataset, tmp_path):
 
 @pytest.mark.parametrize("value", [-1, 2.5, True])
 def test_deform_nodes_must_be_a_count(value):
-    from lumibench.errors import UserError
     from method.config import load_method_config
 
     with pytest.raises(UserError, match="model.deform_nodes"):
         load_method_config("ci", [f"model.deform_nodes={str(value).lower()}"])
 
 
-def test_nodes_in_position_and_motion_keep_a_moving_object_apart_from_the_ground():
-    """Two groups interleaved in space, one moving (descriptor 0.5 further per component), one still: chosen with
-    their motion, every point blends only nodes of its own group; by position alone, most do not."""
-    x = _points(400, seed=4) * 0.2
-    moving = torch.arange(400) % 2 == 1
-    motion = 0.05 * _points(400, seed=5).repeat(1, 2)  # each its own motion, the moving group's 0.5 further on
-    motion[moving] += 0.5
-    for with_motion in (True, False):
-        mn = MotionNodes(40)
-        mn.choose(x, motion if with_motion else None)
-        node_moving = mn.index.new_tensor([bool(moving[(x - n).norm(dim=1).argmin()]) for n in mn.nodes]).bool()
-        same = (node_moving[mn.index] == moving[:, None]).all(1).float().mean()
-        if with_motion:
-            assert same == 1.0
-            w = mn.weights(x)
-            joint = torch.cat([x, motion], 1)
-            nodes = torch.cat([mn.nodes, mn.node_motion], 1)
-            sigma = torch.cdist(nodes, nodes).sort(1).values[:, 1:4].mean(1)
-            for i in range(0, 400, 37):  # the softmax over the joint squared distances
-                d2 = ((joint[i] - nodes[mn.index[i]]) ** 2).sum(-1)
-                assert torch.allclose(w[i], torch.softmax(-d2 / (2 * sigma[mn.index[i]] ** 2), 0), atol=1e-12)
-        else:
-            assert same < 0.5
 
-
-def test_the_scene_chooses_nodes_with_the_networks_motion():
-    """The scene's choice reads the network's offsets at MOTION_TIMES about their mean (normalised by the
-    extent): the descriptor it stores is that, for every Gaussian."""
-    from method.model.scene import MOTION_TIMES
-
-    sc = _scene(nodes=12)
-    sc.extent = 2.0
-    x = sc.normalised(sc.g.means)
-    sc.refresh_nodes()
-    offs = torch.stack([sc.net(x, t)[0] for t in MOTION_TIMES]) / 2.0
-    ref = (offs - offs.mean(0)).permute(1, 0, 2).reshape(60, -1)
-    assert sc.nodes.motion.shape == (60, 3 * len(MOTION_TIMES))
-    assert torch.allclose(sc.nodes.motion, ref, atol=1e-12) and float(ref.abs().max()) > 1e-3
+def test_a_checkpoint_with_session_29s_motion_placement_is_refused():
+    """Nodes chosen in position and motion blended with a motion term; loaded by position alone they would
+    blend other neighbours without a word, so the checkpoint is refused with what to do."""
+    mn = MotionNodes(8)
+    mn.choose(_points(40, seed=1))
+    st = mn.state()
+    assert MotionNodes.from_state(st, "cpu").index.equal(mn.index)
+    st["motion"] = torch.zeros(40, 15, dtype=torch.float64)
+    with pytest.raises(UserError, match="train the run again"):
+        MotionNodes.from_state(st, "cpu")

@@ -14,16 +14,16 @@ K nearest nodes are fixed between re-choices; the blend weights are a softmax of
 them, computed from the current means at every call, so positions keep a gradient through the weights as
 they had one through the encoding. sigma_j: the mean distance from node j to its 3 nearest nodes.
 
-The choice and the neighbours are taken in the joint space of position and motion (``DynamicScene`` passes
-each Gaussian's offsets at five times about their mean, from the network as it stands): a small object that
-moves unlike the ground it touches gets nodes of its own and blends only them, where by position alone its
-Gaussians blended the ground's nodes and trailed along its path (BENCHMARKS.md, session 29: the benchmark's
-moving-object gap smaller on all five scenes trained under city, by 0.2-0.6 dB; under sunrise, stage 1,
-hook +1.1 dB and the mouse -0.6 dB on its moving objects; one seed each).
+By position alone. Session 29 chose the nodes and neighbours in position and motion (the network's offsets at
+five times): the moving-object gap came out smaller on all five scenes under city (seed 0), but under
+sunrise, over three seeds of hook, it cost albedo (-0.34 dB mean) and NVS and widened the gap; it was
+taken out again in session 30 (BENCHMARKS.md, "The nodes in position and motion over three seeds").
 """
 from __future__ import annotations
 
 import torch
+
+from lumibench.errors import UserError
 
 K_NEIGHBOURS = 4      # nodes blended at each Gaussian (SC-GS: 4)
 REFRESH_EVERY = 500   # stage-1 iterations between re-choices of the nodes (also at every count change)
@@ -73,39 +73,28 @@ class MotionNodes:
         self.nodes: torch.Tensor | None = None   # (M, 3) normalised canonical positions
         self.sigma: torch.Tensor | None = None   # (M,)
         self.index: torch.Tensor | None = None   # (N, K) each Gaussian's nearest nodes
-        self.motion: torch.Tensor | None = None  # (N, D) each Gaussian's motion descriptor at the choice (or None)
-        self.node_motion: torch.Tensor | None = None  # (M, D) the nodes' descriptors
 
     def stale(self, n: int) -> bool:
         return self.index is None or self.index.shape[0] != n
 
     @torch.no_grad()
-    def choose(self, x: torch.Tensor, motion: torch.Tensor | None = None) -> None:
-        """Nodes from the normalised canonical means ``x`` (N, 3); each row's nearest nodes. ``motion`` (N, D):
-        each row's motion descriptor (its offsets at a few times about their mean, normalised like ``x``); the
-        choice and the neighbours are then taken in the joint space of position and motion, so a small object
-        that moves unlike the ground beside it gets nodes of its own and blends only them."""
+    def choose(self, x: torch.Tensor) -> None:
+        """Nodes from the normalised canonical means ``x`` (N, 3); each row's nearest nodes."""
         x = x.detach()
-        feat = x if motion is None else torch.cat([x, motion.detach().to(x)], -1)
-        pick = farthest_points(feat, self.count)
-        nodes_f = feat[pick].clone()
-        m = nodes_f.shape[0]
+        nodes = x[farthest_points(x, self.count)].clone()
+        m = nodes.shape[0]
         if m > 1:
-            d, _ = nearest(nodes_f, nodes_f, min(4, m))
+            d, _ = nearest(nodes, nodes, min(4, m))
             sigma = d[:, 1:].mean(-1)  # column 0 is the node itself
         else:
             sigma = torch.ones(1, dtype=x.dtype, device=x.device)
-        self.nodes, self.sigma = nodes_f[:, :3].contiguous(), sigma.clamp_min(1e-6)
-        self.motion = None if motion is None else motion.detach().to(x).clone()
-        self.node_motion = None if motion is None else nodes_f[:, 3:].contiguous()
-        self.index = nearest(feat, nodes_f, K_NEIGHBOURS)[1]
+        self.nodes, self.sigma = nodes, sigma.clamp_min(1e-6)
+        self.index = nearest(x, nodes, K_NEIGHBOURS)[1]
 
     def weights(self, x: torch.Tensor) -> torch.Tensor:
         """(N, K) blend weights of each row of ``x`` over its nearest nodes (rows sum to 1)."""
         nb = self.nodes[self.index]                       # (N, K, 3)
         d2 = ((x[:, None, :] - nb) ** 2).sum(-1)          # (N, K)
-        if self.motion is not None:
-            d2 = d2 + ((self.motion[:, None, :] - self.node_motion[self.index]) ** 2).sum(-1)
         s = self.sigma[self.index]
         return torch.softmax(-d2 / (2.0 * s * s), dim=-1)
 
@@ -114,13 +103,17 @@ class MotionNodes:
         return (values[self.index] * w[..., None]).sum(1)
 
     def state(self) -> dict:
-        return {"count": self.count, **{k: None if getattr(self, k) is None else getattr(self, k).cpu()
-                                        for k in ("nodes", "sigma", "index", "motion", "node_motion")}}
+        return {"count": self.count, "nodes": None if self.nodes is None else self.nodes.cpu(),
+                "sigma": None if self.sigma is None else self.sigma.cpu(),
+                "index": None if self.index is None else self.index.cpu()}
 
     @staticmethod
     def from_state(st: dict, device) -> "MotionNodes":
+        if st.get("motion") is not None:  # session 29's placement: its weights had a motion term this one lacks
+            raise UserError("checkpoint: its nodes were chosen in position and motion (session 29's code), this "
+                            "version chooses them by position; train the run again")
         mn = MotionNodes(st["count"])
-        for k in ("nodes", "sigma", "index", "motion", "node_motion"):
+        for k in ("nodes", "sigma", "index"):
             if st.get(k) is not None:
                 setattr(mn, k, st[k].to(device))
         return mn

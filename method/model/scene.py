@@ -15,8 +15,6 @@ from method.model.nodes import MotionNodes
 from method.splat.camera import Camera
 from method.splat.rasterize import RasterOutput, rasterize
 
-MOTION_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)  # where the nodes' motion descriptor reads the network
-
 
 @dataclass
 class Deformed:
@@ -56,14 +54,7 @@ class DynamicScene:
     def refresh_nodes(self) -> None:
         """Re-choose the nodes from the current canonical means (no-op without nodes)."""
         if self.nodes is not None:
-            self._choose_nodes(self.normalised(self.g.means))
-
-    @torch.no_grad()
-    def _choose_nodes(self, x: torch.Tensor) -> None:
-        """Nodes in the joint space of position and motion: the network's offsets at every Gaussian at
-        MOTION_TIMES about their mean, in the units of ``x`` (zero before the network has learned motion)."""
-        offs = torch.stack([self.net(x, t)[0] for t in MOTION_TIMES]) / self.extent
-        self.nodes.choose(x, (offs - offs.mean(0)).permute(1, 0, 2).reshape(x.shape[0], -1))
+            self.nodes.choose(self.normalised(self.g.means))
 
     def field(self, x: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(d mu, d r, d c) at the normalised positions ``x`` (one row per Gaussian) and time ``t``: the
@@ -71,7 +62,7 @@ class DynamicScene:
         if self.nodes is None:
             return self.net(x, t)
         if self.nodes.stale(x.shape[0]):
-            self._choose_nodes(x)
+            self.nodes.choose(x)
         w = self.nodes.weights(x)
         return tuple(self.nodes.blend(v, w) for v in self.net(self.nodes.nodes, t))
 
@@ -117,7 +108,7 @@ class DynamicScene:
                         trunk_cache[key] = (h, *self.net.heads(h)[:2], w)
                     else:
                         if self.nodes.stale(n):
-                            self._choose_nodes(x)
+                            self.nodes.choose(x)
                         h, w = self.net.trunk(self.nodes.nodes, t), self.nodes.weights(x)
                         trunk_cache[key] = (h, *(self.nodes.blend(v, w) for v in self.net.heads(h)[:2]), w)
             h, d_mu, d_rot, w = trunk_cache[key]
