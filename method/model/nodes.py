@@ -16,8 +16,8 @@ they had one through the encoding. sigma_j: the mean distance from node j to its
 
 By position alone. Session 29 chose the nodes and neighbours in position and motion (the network's offsets at
 five times): the moving-object gap came out smaller on all five scenes under city (seed 0), but under
-sunrise, over three seeds of hook, it cost albedo (-0.34 dB mean) and NVS and widened the gap; it was
-taken out again in session 30 (BENCHMARKS.md, "The nodes in position and motion over three seeds").
+sunrise, three seeds each of hook and the mouse, it was even on average and cost hook albedo on two seeds
+(mean -0.34 dB); taken out in session 30 (BENCHMARKS.md, "The nodes in position and motion over three seeds").
 """
 from __future__ import annotations
 
