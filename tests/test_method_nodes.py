@@ -163,7 +163,6 @@ def test_deform_nodes_must_be_a_count(value):
         load_method_config("ci", [f"model.deform_nodes={str(value).lower()}"])
 
 
-
 def test_a_checkpoint_with_session_29s_motion_placement_is_refused():
     """Nodes chosen in position and motion blended with a motion term; loaded by position alone they would
     blend other neighbours without a word, so the checkpoint is refused with what to do."""

@@ -740,7 +740,6 @@ def test_stage2_trunk_cache_gives_the_same_deformation_and_head_gradients(monkey
     scene = _tiny_scene()
     _randomise_heads(scene.net)
     scene.nodes = MotionNodes(nodes) if nodes else None
-    scene.refresh_nodes()  # chosen now, so the trunk calls counted below are the field's alone
     head = freeze_geometry(scene)
     cache: dict = {}
     calls = []
