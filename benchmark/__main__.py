@@ -14,6 +14,7 @@ main = build_main(
         "metrics": "benchmark.commands.metrics",
         "score": "benchmark.commands.score",
         "eval": "benchmark.commands.eval",
+        "tables": "benchmark.commands.tables",
         "check-report": "benchmark.commands.check_report",
     },
 )

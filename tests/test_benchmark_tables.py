@@ -325,3 +325,36 @@ def test_rows_that_mix_adapter_versions_or_settings_are_named():
     # failed runs do not count: they have no settings to mix
     with_failure = same + [fake_result("ours", scene="s3", status="failed")]
     assert "Rows that mix runs" not in tables.markdown(aggregate(with_failure), check_consistent(with_failure))
+
+
+# --- `python -m benchmark tables DIR`: the tables rebuilt from a results folder alone ---
+
+def test_tables_verb_rebuilds_from_stored_results_alone(tmp_path, capsys):
+    """No dataset, no runs, no grid YAML: the verb reads DIR/runs and rewrites a stale table with every
+    stored result, the strict protocol's in its own table."""
+    from benchmark.__main__ import main
+
+    out = tmp_path / "small"
+    for scene, a in (("a", 27.0), ("b", 29.0)):
+        r = fake_result("ours", scene, albedo_psnr=a)
+        write_result(out / "runs" / "ours" / scene / "results.json", r)
+        write_result(out / "runs" / "ours" / scene / "results_strict.json",
+                     r | {"protocol": "strict", "metrics": r["metrics"] | {"albedo": r["metrics"]["albedo"] | {"psnr": a - 6}}})
+    (out / "table.md").write_text("stale\n")
+    assert main(["tables", str(out), "--no-grids"]) == 0
+    md = (out / "table.md").read_text()
+    assert "stale" not in md and "Protocol lumimotion" in md and "Protocol strict" in md
+    assert "28.00 ± 1.00" in md  # the two scenes' albedo PSNR, lumimotion
+    assert "22.00 ± 1.00" in md  # and strict
+    assert (out / "report.html").is_file()
+    assert "4 result files" in capsys.readouterr().out
+
+
+def test_tables_verb_refuses_a_folder_without_results(tmp_path, capsys):
+    from benchmark.__main__ import main
+
+    assert main(["tables", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no result files" in err[0]
+    assert main(["tables", str(tmp_path / "nope")]) != 0
+    assert "no such results folder" in capsys.readouterr().err
