@@ -15,6 +15,7 @@ main = build_main(
         "score": "benchmark.commands.score",
         "eval": "benchmark.commands.eval",
         "tables": "benchmark.commands.tables",
+        "compare": "benchmark.commands.compare",
         "check-report": "benchmark.commands.check_report",
     },
 )

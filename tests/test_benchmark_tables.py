@@ -358,3 +358,38 @@ def test_tables_verb_refuses_a_folder_without_results(tmp_path, capsys):
     assert len(err) == 1 and "no result files" in err[0]
     assert main(["tables", str(tmp_path / "nope")]) != 0
     assert "no such results folder" in capsys.readouterr().err
+
+
+# --- `python -m benchmark compare OLD NEW`: job by job ---
+
+def test_compare_matches_jobs_by_identity_and_counts_improvements_by_direction(tmp_path, capsys):
+    """Pairs by (method, scene, lights, seed, protocol), never by position; LPIPS lower is better; a job on
+    one side only or failed on one side is listed and kept out of the means."""
+    from benchmark.__main__ import main
+    from benchmark.compare import compare
+
+    def put(side, r, name="results.json"):
+        write_result(tmp_path / side / "runs" / r["method"] / r["scene"] / f"seed{r['seed']}" / name, r)
+
+    put("old", fake_result("ours", "a", albedo_psnr=25.0, lpips=0.10))
+    put("new", fake_result("ours", "a", albedo_psnr=26.0, lpips=0.12))      # PSNR better, LPIPS worse
+    put("old", fake_result("ours", "b", albedo_psnr=30.0, lpips=0.10))
+    put("new", fake_result("ours", "b", albedo_psnr=29.0, lpips=0.11))      # both worse
+    put("old", fake_result("ours", "b", seed=1, albedo_psnr=10.0))          # only before
+    put("old", fake_result("ours", "c", albedo_psnr=20.0))
+    put("new", fake_result("ours", "c", status="failed"))                    # failed after
+    put("new", fake_result("ours", "a", albedo_psnr=99.0) | {"protocol": "strict"}, "results_strict.json")
+    c = compare(tmp_path / "old", tmp_path / "new")
+    assert [(o["scene"], n["scene"]) for o, n in c.pairs] == [("a", "a"), ("b", "b")]
+    assert c.summary("albedo.psnr") == (0.0, 1, 2)
+    mean, better, n = c.summary("albedo.lpips")
+    assert abs(mean - (0.02 + 0.01) / 2) < 1e-12 and (better, n) == (0, 2)  # higher LPIPS is worse
+    assert [i[1] for i in c.only_old] == ["b"] and c.failed == [(("ours", "c", "city", "sunrise", 0, "lumimotion"), "new")]
+    strict = compare(tmp_path / "old", tmp_path / "new", protocol="strict")
+    assert not strict.pairs and [i[1] for i in strict.only_new] == ["a"]
+    assert main(["compare", str(tmp_path / "old"), str(tmp_path / "new"), "--out", str(tmp_path / "c.md")]) == 0
+    out = capsys.readouterr().out
+    assert "| ours | a | city -> sunrise | 0 |" in out and "25.00 -> 26.00" in out and "+0.00 (better 1 of 2)" in out
+    assert "failed on new side" in out and "only in" in out and (tmp_path / "c.md").read_text() == out
+    assert main(["compare", str(tmp_path / "old"), str(tmp_path / "new"), "--methods", "theirs"]) != 0
+    assert "no job is in both" in capsys.readouterr().err
