@@ -48,28 +48,27 @@ def build_outputs(result_paths: Iterable[str | Path], out_dir: str | Path, title
         chart_paths["thesis"] = thesis_paths["thesis.png"]
     written.update(budget.write(primary, out, ptables[0].protocol))  # speed against accuracy, when variants ran
     grid_paths = []
-    if grids:
-        seen = set()
-        for r in primary:  # one grid per (method, scene, configuration): the lowest seed that succeeded
-            key = (r["method"], r["scene"], r["train_light"], r["test_light"])
-            if r["status"] != "ok" or key in seen:
-                continue
-            seen.add(key)
-            name = f"{r['method']}_{r['scene']}_{r['train_light']}_to_{r['test_light']}_seed{r['seed']}.png"
-            target = out / "grids" / name
-            scored = r["inputs"].get("pred_meta_sha256")
-            if not Path(r["inputs"]["pred_dir"]).is_dir() or (
-                    scored and predictions_hash(Path(r["inputs"]["pred_dir"])) != scored):
-                # The tables are rebuilt from result files alone (a grid of other machines' runs, or runs/
-                # cleaned, or another run's predictions in that folder now): keep the grid drawn when the
-                # scored predictions were here, and never fail for it.
-                if target.is_file():
-                    grid_paths.append(target)
-                else:
-                    print(f"note: no image grid for {name[:-4]}: the predictions it scored are not here "
-                          f"({r['inputs']['pred_dir']})", file=sys.stderr)
-                continue
-            grid_paths.append(image_grid(r, target))
+    seen = set()
+    for r in primary:  # one grid per (method, scene, configuration): the lowest seed that succeeded
+        key = (r["method"], r["scene"], r["train_light"], r["test_light"])
+        if r["status"] != "ok" or key in seen:
+            continue
+        seen.add(key)
+        name = f"{r['method']}_{r['scene']}_{r['train_light']}_to_{r['test_light']}_seed{r['seed']}.png"
+        target = out / "grids" / name
+        scored = r["inputs"].get("pred_meta_sha256")
+        if not grids or not Path(r["inputs"]["pred_dir"]).is_dir() or (
+                scored and predictions_hash(Path(r["inputs"]["pred_dir"])) != scored):
+            # Not drawn now (grids=False, or the tables are rebuilt from result files alone: a grid of other
+            # machines' runs, runs/ cleaned, or another run's predictions in that folder now): the report
+            # keeps a grid drawn earlier, and never fails for a missing one.
+            if target.is_file():
+                grid_paths.append(target)
+            elif grids:
+                print(f"note: no image grid for {name[:-4]}: the predictions it scored are not here "
+                      f"({r['inputs']['pred_dir']})", file=sys.stderr)
+            continue
+        grid_paths.append(image_grid(r, target))
     report = write_report(out / "report.html", ptables, results, chart_paths, grid_paths,
                           {k: v for k, v in written.items()}, title, reference=reference)
     return {**written, **{v.name: v for v in chart_paths.values()}, "report.html": report,

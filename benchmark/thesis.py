@@ -71,7 +71,10 @@ def better(delta: float, metric: ThesisMetric) -> bool:
 def compare(results: Sequence[dict], dynamic: str = DYNAMIC, static: str = STATIC) -> list[dict]:
     """One entry per configuration present in both methods' results: {configuration, scenes: [{scene,
     missing (a method without a successful run, or None), metrics: {key: {dynamic: (mean, std, n), static:
-    (...), change}}}], overall: {key: {mean, std, n_scenes, wins}}}."""
+    (...), change, seed_range}}}], overall: {key: {mean, std, n_scenes, wins}}}.
+
+    ``change`` compares the seed means; ``seed_range`` is (min, max, pairs) of the change taken between every
+    seed of one method and every seed of the other, so a reader sees whether the sign survives the seeds."""
     confs = sorted({(r["train_light"], r["test_light"]) for r in results if r["method"] in (dynamic, static)})
     out = []
     for conf in confs:
@@ -94,8 +97,10 @@ def compare(results: Sequence[dict], dynamic: str = DYNAMIC, static: str = STATI
                 if not d or not s:
                     continue
                 c = change(float(np.mean(d)), float(np.mean(s)), m)
+                pairs = [change(x, y, m) for x in d for y in s]  # every dynamic seed against every static one
                 row["metrics"][m.key] = {"dynamic": (float(np.mean(d)), float(np.std(d)), len(d)),
-                                         "static": (float(np.mean(s)), float(np.std(s)), len(s)), "change": c}
+                                         "static": (float(np.mean(s)), float(np.std(s)), len(s)), "change": c,
+                                         "seed_range": (float(min(pairs)), float(max(pairs)), len(pairs))}
                 deltas[m.key].append(c)
             rows.append(row)
         overall = {k: {"mean": float(np.mean(v)), "std": float(np.std(v)), "n_scenes": len(v),
@@ -114,6 +119,15 @@ def _delta(c: float, m: ThesisMetric) -> str:
     return f"{c:+.1f} %" if m.relative else f"{c:+.2f} dB" if "psnr" in m.key else f"{c:+.{m.digits}f}"
 
 
+def _seed_range(e: dict, m: ThesisMetric) -> str:
+    lo, hi, n = e["seed_range"]
+    if n < 2:
+        return ""
+    if m.relative:
+        return f"; seeds {lo:+.1f} to {hi:+.1f} %"
+    return f"; seeds {lo:+.{m.digits}f} to {hi:+.{m.digits}f}" + (" dB" if "psnr" in m.key else "")
+
+
 def _spread(o: dict, m: ThesisMetric) -> str:
     if m.relative:
         return f"{o['mean']:+.1f} ± {o['std']:.1f} %"
@@ -126,8 +140,9 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None, dynamic: 
     """thesis.md: per configuration, a row per scene (static -> dynamic, change) and the mean over scenes."""
     lines = [f"# {dynamic} (dynamic capture) against {static} (the same pipeline on the static capture)", "",
              f"Protocol: {protocol or '?'}. Per scene: each method's mean ± std over its seeds (n), static → "
-             f"dynamic, and the change (LPIPS and MSE in percent of the static value, PSNR in dB; negative LPIPS "
-             f"and MSE changes and positive PSNR changes favour the dynamic capture). Last row: the mean ± std "
+             f"dynamic, and the change of the means (LPIPS and MSE in percent of the static value, PSNR in dB; "
+             f"negative LPIPS and MSE changes and positive PSNR changes favour the dynamic capture) with, where "
+             f"a method has several seeds, the lowest and highest change between one seed of each. Last row: the mean ± std "
              f"over scenes of the per-scene change, and on how many scenes the dynamic capture is better. The "
              f"paper: albedo LPIPS {PAPER_CLAIMS['albedo.lpips']:+.0f} %, relight LPIPS "
              f"{PAPER_CLAIMS['relight.lpips']:+.0f} % against the best static baseline (its own dataset)."]
@@ -151,7 +166,7 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None, dynamic: 
                 e = row["metrics"].get(m.key)
                 cells.append("–" if e is None else
                              f"{_ms(e['static'], m.digits)} → {_ms(e['dynamic'], m.digits)} "
-                             f"(**{_delta(e['change'], m)}**)")
+                             f"(**{_delta(e['change'], m)}**{_seed_range(e, m)})")
             lines.append(f"| {row['scene']} | {first['dynamic'][2]} / {first['static'][2]} | " + " | ".join(cells) + " |")
         cells = []
         for m in METRICS:
@@ -163,7 +178,8 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None, dynamic: 
 
 def chart(comparisons: Sequence[dict], path: Path, protocol: str | None = None) -> Path | None:
     """thesis.png: per configuration, the change of albedo and relight LPIPS per scene (bars, from the seed
-    means) and their mean over scenes (whisker: std over scenes), the paper's claims as dashed lines."""
+    means; grey whisker: lowest to highest change between one seed of each method) and their mean over scenes
+    (black whisker: std over scenes), the paper's claims as dashed lines."""
     comps = [c for c in comparisons if any(not r["missing"] for r in c["scenes"])]
     if not comps:
         return None
@@ -189,6 +205,12 @@ def chart(comparisons: Sequence[dict], path: Path, protocol: str | None = None) 
             vals.append(o["mean"] if o else np.nan)
             xs = np.arange(len(names)) + (i - (len(keys) - 1) / 2) * width
             ax.bar(xs, vals, width, color=colours[m.key], label=m.label)
+            for x, r in zip(xs, rows):  # the seeds: lowest to highest change between one seed of each method
+                e = r["metrics"].get(m.key)
+                if e is not None and e["seed_range"][2] > 1:
+                    lo, hi, _ = e["seed_range"]
+                    ax.plot([x, x], [lo, hi], color="0.25", lw=1.2, solid_capstyle="butt")
+                    ax.hlines([lo, hi], x - width / 4, x + width / 4, color="0.25", lw=1.2)
             if o and o["n_scenes"] > 1:
                 ax.errorbar(xs[-1], o["mean"], yerr=o["std"], color="k", capsize=3, lw=1)
             ax.axhline(PAPER_CLAIMS[m.key], color=colours[m.key], ls="--", lw=1,
@@ -203,6 +225,11 @@ def chart(comparisons: Sequence[dict], path: Path, protocol: str | None = None) 
             ax.set_ylabel("change, dynamic vs static (%)\n< 0: the dynamic capture is better")
         ax.grid(alpha=0.3, axis="y")
     handles, labels = axes[0][0].get_legend_handles_labels()
+    if any(e["seed_range"][2] > 1 for c in comps for r in c["scenes"] for e in r["metrics"].values()):
+        from matplotlib.lines import Line2D
+
+        handles.append(Line2D([], [], color="0.25", lw=1.2))
+        labels.append("seeds: lowest to highest change between one seed of each method")
     fig.legend(handles, labels, loc="outside lower center", ncols=2, fontsize=8)
     fig.suptitle("Dynamic against static capture: LPIPS change per scene" + (f" [{protocol}]" if protocol else ""))
     with atomic_path(path) as tmp:

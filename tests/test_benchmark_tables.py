@@ -151,6 +151,10 @@ def test_outputs_rebuilt_without_predictions_keep_drawn_grids(tmp_path, capsys):
     assert "grids/ours_a_city_to_sunrise_seed0.png" in html
     assert "grids/ours_b_city_to_sunrise_seed0.png" not in html
     assert "no image grid for ours_b_city_to_sunrise_seed0" in capsys.readouterr().err
+    # without drawing (`--no-grids`), the report still links the grid drawn before, and says nothing of the rest
+    html = build_outputs(paths, tmp_path / "out", grids=False)["report.html"].read_text()
+    assert "grids/ours_a_city_to_sunrise_seed0.png" in html and kept.read_bytes().endswith(b"old")
+    assert "no image grid" not in capsys.readouterr().err
 
 
 # --- readable charts (issue 26): plain log ticks that do not overlap, "not run" is no failure, legends outside ---

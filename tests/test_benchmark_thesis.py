@@ -41,6 +41,10 @@ def test_per_scene_changes_and_the_mean_over_scenes_match_a_hand_computation():
     b = rows["b"]["metrics"]["albedo.lpips"]
     assert b["change"] == pytest.approx(100 * (0.12 - 0.09) / 0.09)
     assert rows["a"]["metrics"]["relight.psnr"]["change"] == pytest.approx(27.5 - 26.0)  # dB, not percent
+    # the seeds: every seed of one method against every seed of the other
+    assert a["seed_range"] == pytest.approx((-60.0, -40.0, 2))  # 0.04 and 0.06 against 0.10
+    assert b["seed_range"] == pytest.approx((20.0, 50.0, 2))    # 0.12 against 0.10 and 0.08
+    assert rows["a"]["metrics"]["relight.psnr"]["seed_range"] == pytest.approx((1.0, 2.0, 2))
     assert rows["b"]["metrics"]["relight.psnr"]["change"] == pytest.approx(27.0 - 26.0)
     o = comp["overall"]["albedo.lpips"]
     changes = [-50.0, 100 * (0.12 - 0.09) / 0.09]
@@ -53,7 +57,8 @@ def test_markdown_names_missing_runs_and_the_paper_claims():
     text = thesis.markdown(thesis.compare(_results()), "lumimotion")
     assert "| c | no successful run of static |" in text
     assert "| d | static not run |" in text
-    assert "0.100 → 0.050 ± 0.010 (**-50.0 %**)" in text
+    assert "0.100 → 0.050 ± 0.010 (**-50.0 %**; seeds -60.0 to -40.0 %)" in text
+    assert "(**+1.00 dB**; seeds +0.50 to +1.50 dB)" in text   # b's relight: 27.0 against 26.5 and 25.5
     assert "+1.50 dB" in text and "better on 1 of 2" in text
     assert "-23 %" in text and "-15 %" in text
 
@@ -75,3 +80,9 @@ def test_build_outputs_writes_the_thesis_table_chart_and_report_section(tmp_path
     assert "thesis.md" in out
     html = (tmp_path / "out" / "report.html").read_text()
     assert "Dynamic against static capture" in html and "thesis.png" in html
+
+
+def test_one_seed_each_gives_no_seed_range_in_the_table():
+    rs = [fake_result("lumimotion", "a", lpips=0.05), fake_result("static", "a", lpips=0.10)]
+    text = thesis.markdown(thesis.compare(rs), "lumimotion")
+    assert "0.100 → 0.050 (**-50.0 %**)" in text and "seeds" not in text.split("## city")[1]
