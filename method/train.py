@@ -7,7 +7,7 @@ the loop runs the steps and owns everything around them. Run directory
     config.yaml            the resolved configuration and the run's identity (method/run_record.py)
     checkpoints/stage<k>_<iteration>.pt   every stage<k>.checkpoint_every and at the end; the last two kept
     log_stage<k>.jsonl     one line per stage<k>.log_every iterations (loss terms, PSNR, Gaussian count)
-    timings.json           seconds, iterations/s, peak memory, device, threads, where the time went
+    timings.json           seconds, iterations/s, peak memory, device, threads (kernels, torch), where the time went
     metrics_stage<k>.json  what the finished stage reports (method/stage1.py, method/stage2.py)
     renders/, predictions/ the stages' outputs
     failure.json           written when training stops on a non-finite value (the benchmark shows it)
@@ -30,7 +30,7 @@ from method import run_record
 from method.checkpoints import checkpoint_paths, latest_checkpoint, save_checkpoint
 from method.data import SceneData, load_scene
 from method.devices import check_device, cpu_has_native_bf16, device_name, peak_memory_bytes, sync
-from method.splat.backend import resolve as resolve_backend
+from method.splat.backend import kernels_take_the_threads, resolve as resolve_backend
 from method.stage1 import Stage1
 from method.stage2 import Stage2
 
@@ -82,7 +82,7 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
     s = cfg[f"stage{k}"]
     dev = stage.device
     what = f"stage {k}"
-    with run_record.RunLock(run_dir):
+    with run_record.RunLock(run_dir), kernels_take_the_threads(dev) as kernel_threads:
         existing = checkpoint_paths(run_dir, k)
         if existing and not resume:
             raise UserError(f"{run_dir} already has stage-{k} checkpoints: pass --resume to continue it, or choose "
@@ -164,8 +164,8 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
                           "cpu_seconds_this_session": time.process_time() - c0,
                           "breakdown_s": {n: round(v, 4) for n, v in timer.sums.items()},
                           "breakdown_iterations": total - start_it, **stage.timing_fields()},
-            "device": device_name(dev), "device_type": dev.type, "threads": torch.get_num_threads(),
-            "splat_backend": resolve_backend(None, dev), "peak_memory_bytes": peak_memory_bytes(dev)})
+            "device": device_name(dev), "device_type": dev.type, "threads": kernel_threads,
+            "torch_threads": torch.get_num_threads(), "splat_backend": resolve_backend(None, dev), "peak_memory_bytes": peak_memory_bytes(dev)})
         metrics = stage.finish(run_dir, seconds, write_outputs, gen)
         atomic_write_json(run_dir / f"metrics_stage{k}.json", metrics)
     return metrics

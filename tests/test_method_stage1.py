@@ -443,8 +443,10 @@ def _cfg(extra=()):
     return load_method_config("ci", TINY + list(extra))
 
 
-@pytest.mark.parametrize("backend", ["numba", "torch"])
-def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path, monkeypatch, backend):
+@pytest.mark.parametrize("backend,threads", [("numba", 1), ("torch", 1), ("numba", 2)])
+def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path, monkeypatch, backend, threads):
+    """Also with two threads, where a training alone runs torch on one and the kernels on two
+    (method.splat.backend.kernels_take_the_threads): their sums split over threads come back the same."""
     import method.splat.backend as backend_mod
     from method.checkpoints import checkpoint_paths, load_checkpoint
     from method.train import train_stage1
@@ -452,9 +454,12 @@ def test_resume_equals_an_uninterrupted_run(ci_dataset, tmp_path, monkeypatch, b
     if backend == "numba" and not backend_mod.numba_available():
         pytest.skip("numba is not installed")
     monkeypatch.setattr(backend_mod, "_default", backend)
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads)
     full = tmp_path / "full"
     train_stage1(ci_dataset, "city", full, _cfg(), seed=3, progress=False, write_outputs=False)
+    timings = json.loads((full / "timings.json").read_text())
+    assert (timings["threads"], timings["torch_threads"]) == ((threads, 1) if threads > 1 else (1, 1))
+    assert torch.get_num_threads() == threads  # put back after the training
     cks = checkpoint_paths(full)
     assert [i for i, _ in cks] == [12, 24]
     # the interrupted run: the same directory as it was at iteration 12, then --resume

@@ -295,6 +295,32 @@ def test_compiled_kernels_leave_torchs_thread_count_alone():
     assert out.stdout.split() == ["1", "1", "1"], out.stdout + out.stderr
 
 
+def test_a_training_alone_gives_the_kernels_torchs_threads_and_torch_one():
+    """kernels_take_the_threads (what a training runs in): with torch on two threads, torch runs on one
+    inside and the kernels on two, and torch gets its two back after; on one thread (a grid worker) or a
+    GPU nothing changes. In a fresh process with a pool of two, as on the 2-core machine."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import torch, numba\nfrom method.splat.backend import kernels_take_the_threads\n"
+            "from method.splat.bench import make_scene\nfrom method.splat.rasterize import rasterize\n"
+            "m, q, s, o, f, cam = make_scene(500, 32)\nout = []\n"
+            "for n, dev in ((2, 'cpu'), (1, 'cpu'), (2, 'cuda')):\n"
+            "    torch.set_num_threads(n)\n"
+            "    with kernels_take_the_threads(torch.device(dev)) as k:\n"
+            "        rasterize(m, q, s, o, f, cam, backend='numba')\n"
+            "        out.append((k, torch.get_num_threads(), numba.get_num_threads()))\n"
+            "    out.append(torch.get_num_threads())\n"
+            "print(out)\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    env["NUMBA_NUM_THREADS"] = "2"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    # (kernels' count it yields, torch inside, Numba inside), then torch after
+    assert out.stdout.strip() == "[(2, 1, 2), 2, (1, 1, 1), 1, (2, 2, 2), 2]", out.stdout + out.stderr
+
+
 def test_setup_warm_up_compiles_every_kernel():
     """`make setup` runs method.splat.warm so a first training does not compile: in a fresh process (the
     on-disk cache loads, or compiles, only what is called) every public kernel must have a signature after

@@ -8,6 +8,7 @@ trace() call can also name one.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 
 import torch
@@ -56,3 +57,34 @@ def resolve(name: str | None, device: torch.device) -> str:
             raise ValueError("the numba splat backend needs numba (pip install numba); or use backend 'torch'")
         return "numba"
     return "numba" if device.type == "cpu" and numba_available() else "torch"
+
+
+_kernel_threads: int | None = None  # set inside kernels_take_the_threads(); None: as many as torch uses
+
+
+def kernel_threads() -> int | None:
+    """How many threads the compiled kernels should run on, if not torch's count (see below)."""
+    return _kernel_threads
+
+
+@contextlib.contextmanager
+def kernels_take_the_threads(device: torch.device):
+    """Within: torch on one thread, the compiled kernels on the threads torch had (CPU, compiled backend,
+    torch on more than one thread: a training alone; a grid worker is on one already and nothing changes).
+
+    Why: torch's many small ops at the `small` sizes (the loss on 128 x 128 images, Adam over ~20k
+    Gaussians) ran twice as slow on two threads as on one, while the kernels gain from the second:
+    500 stage-1 iterations alone on 2 cores took 1.15-1.21x less time and 24-28 % less CPU this way
+    (BENCHMARKS.md, "small alone on 2 cores"). Yields the kernels' thread count."""
+    global _kernel_threads
+    budget = torch.get_num_threads()
+    if device.type != "cpu" or budget <= 1 or resolve(None, device) != "numba" or _kernel_threads is not None:
+        yield _kernel_threads or budget
+        return
+    _kernel_threads = budget
+    torch.set_num_threads(1)
+    try:
+        yield budget
+    finally:
+        _kernel_threads = None
+        torch.set_num_threads(budget)

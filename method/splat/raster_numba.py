@@ -25,6 +25,7 @@ import numpy as np
 import numba
 import torch
 from numba import njit, prange
+from .backend import kernel_threads
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -477,14 +478,15 @@ def _cross_back(m, i, j, g, gm):
 
 
 def match_torch_threads() -> None:
-    """Run the kernels on as many threads as torch uses (torch.set_num_threads, JOBS=N workers).
+    """Run the kernels on as many threads as torch uses (torch.set_num_threads, JOBS=N workers), or on
+    the count backend.kernels_take_the_threads() set (a training alone: torch on one, the kernels on all).
 
     Numba's OpenMP pool, started on first use, sets the process's OpenMP thread count to
     NUMBA_NUM_THREADS, and torch reads the same count: a grid worker set to one thread ran torch on two
     from its first kernel on (two such workers on 2 cores: stage 2 ~3x slower, BENCHMARKS.md). So torch's
     count is read before and put back after."""
     want = torch.get_num_threads()
-    n = max(1, min(want, numba.config.NUMBA_NUM_THREADS))
+    n = max(1, min(kernel_threads() or want, numba.config.NUMBA_NUM_THREADS))
     if numba.get_num_threads() != n:  # the first call starts the pool
         numba.set_num_threads(n)
     if torch.get_num_threads() != want:
