@@ -73,9 +73,10 @@ def kernels_take_the_threads(device: torch.device):
     torch on more than one thread: a training alone; a grid worker is on one already and nothing changes).
 
     Why: torch's many small ops at the `small` sizes (the loss on 128 x 128 images, Adam over ~20k
-    Gaussians) ran twice as slow on two threads as on one, while the kernels gain from the second:
-    500 stage-1 iterations alone on 2 cores took 1.15-1.21x less time and 24-28 % less CPU this way
-    (BENCHMARKS.md, "small alone on 2 cores"). Yields the kernels' thread count."""
+    Gaussians) ran twice as slow on two threads as on one, while the kernels gain from the second. A
+    whole `make train PROFILE=small` alone on 2 cores: stage 2 1.20x faster (211 s against 253), stage 1
+    level (442 against 428 s: the network loses on one thread what the loss and the step gain), 16 % less
+    CPU in all (BENCHMARKS.md, "small alone on 2 cores"). Yields the kernels' thread count."""
     global _kernel_threads
     budget = torch.get_num_threads()
     if device.type != "cpu" or budget <= 1 or resolve(None, device) != "numba" or _kernel_threads is not None:
