@@ -165,7 +165,8 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
                           "breakdown_s": {n: round(v, 4) for n, v in timer.sums.items()},
                           "breakdown_iterations": total - start_it, **stage.timing_fields()},
             "device": device_name(dev), "device_type": dev.type, "threads": kernel_threads,
-            "torch_threads": torch.get_num_threads(), "splat_backend": resolve_backend(None, dev), "peak_memory_bytes": peak_memory_bytes(dev)})
+            "torch_threads": torch.get_num_threads(), "splat_backend": resolve_backend(None, dev),
+            "peak_memory_bytes": peak_memory_bytes(dev)})
         metrics = stage.finish(run_dir, seconds, write_outputs, gen)
         atomic_write_json(run_dir / f"metrics_stage{k}.json", metrics)
     return metrics
