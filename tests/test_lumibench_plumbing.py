@@ -60,7 +60,7 @@ def test_read_image_roundtrip_and_errors(tmp_path):
 
 
 def test_profiles_load_and_unknown_profile():
-    assert {"ci", "small", "full"} <= set(available_profiles())
+    assert {"ci", "demo", "small", "full"} <= set(available_profiles())
     ci = load_profile("ci")
     assert ci.dataset.resolution <= 64 and ci.dataset.dynamic_frames <= 16
     assert ci.dataset.test_views <= 4 and ci.dataset.spp <= 8
@@ -68,6 +68,32 @@ def test_profiles_load_and_unknown_profile():
     assert full.dataset.frames_for("spheres") == 100 and full.dataset.frames_for("hook") == 150
     with pytest.raises(UserError, match="unknown profile 'huge'"):
         load_profile("huge")
+
+
+def test_demo_profile_is_ci_with_the_spheres_frames_and_named_settings():
+    """`make demo`'s profile: ci's images with small's 60 spheres frames (at ci's 16 the balls are not
+    learned), and ci's method settings but for the keys BENCHMARKS.md measured for it (session 35)."""
+    from method.config import load_method_config
+
+    ci, demo = load_profile("ci").dataset, load_profile("demo").dataset
+    assert (demo.resolution, demo.test_views, demo.spp, demo.static_timestep) == \
+        (ci.resolution, ci.test_views, ci.spp, ci.static_timestep)
+    assert demo.frames_for("spheres") == load_profile("small").dataset.frames_for("spheres") == 60
+    assert load_profile("demo").method == load_profile("ci").method
+
+    def flat(d, prefix=""):
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    c, d = flat(load_method_config("ci")), flat(load_method_config("demo"))
+    assert set(c) == set(d)
+    changed = {k for k in c if c[k] != d[k]} - {"profile"}
+    assert changed == {"model.time_freqs", "model.time_net_width", "model.time_net_out",
+                       "stage2.normal_offset", "stage2.env_quadrature"}
+    small = flat(load_method_config("small"))
+    assert all(d[k] == small[k] for k in changed)
 
 
 def test_run_cli_turns_user_error_into_exit_2(capsys):

@@ -9,7 +9,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("dataset", help="render the dataset (both variants, train and test splits) of scenes",
                        description="Render DATA/PROFILE/<scene> and <scene>_statictimestepNNNN for each scene. "
                                    "Resumable: finished frames with the same spec hash and settings are skipped.")
-    p.add_argument("--profile", default="ci", help="configs/profiles/<name>.yaml: ci, small or full (default ci)")
+    p.add_argument("--profile", default="ci", help="configs/profiles/<name>.yaml: ci, demo, small or full (default ci)")
     p.add_argument("--data", default="data", help="dataset root (default data)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes, each building the scene once (default 1)")
     p.add_argument("--scenes", nargs="+", default=None, help="scene names or scene YAML paths (default: every configs/scenes/*.yaml)")

@@ -9,13 +9,14 @@ DEMO_GRID = Path(__file__).resolve().parents[2] / "configs" / "benchmark" / "dem
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="the whole chain on the embedded ci scene, with a table and a picture sheet",
-                       description="Render the ci dataset of the default scene, train LumiMotion (both stages), "
-                                   "relight the test views, score it and the two floors, and write a table, a "
-                                   "report and a picture sheet under OUT/ci/.")
+    p = sub.add_parser("demo", help="the whole chain on the embedded default scene, with a table and a picture sheet",
+                       description="Render the demo profile's dataset of the default scene (configs/benchmark/"
+                                   "demo.yaml), train LumiMotion (both stages), relight the test views, score it "
+                                   "and the two floors, and write a table, a report and a picture sheet under "
+                                   "OUT/<profile>/.")
     p.add_argument("--data", default="data")
     p.add_argument("--runs", default="runs")
-    p.add_argument("--out", default="demo", help="results root (default demo; writes OUT/ci/)")
+    p.add_argument("--out", default="results", help="results root (default results; writes OUT/demo/)")
     p.add_argument("--jobs", type=int, default=1, help="render worker processes")
 
 

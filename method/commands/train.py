@@ -12,7 +12,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "Any configuration key can be overridden: stage1.iterations=500.")
     p.add_argument("--scene", required=True, help="scene name under DATA/PROFILE, or a scene directory")
     p.add_argument("--light", default="city", help="training light (default city)")
-    p.add_argument("--profile", default="ci", help="effort profile: ci, small, full (default ci)")
+    p.add_argument("--profile", default="ci", help="effort profile, configs/profiles/<name>.yaml: ci, demo, small, full (default ci)")
     p.add_argument("--stage", default="all", choices=["1", "2", "all"],
                    help="1, 2 (from the run's stage-1 checkpoint), or all: both, then the benchmark predictions (default)")
     p.add_argument("--seed", type=int, default=0)
