@@ -90,7 +90,7 @@ def test_demo_profile_is_ci_with_the_spheres_frames_and_named_settings():
     c, d = flat(load_method_config("ci")), flat(load_method_config("demo"))
     assert set(c) == set(d)
     changed = {k for k in c if c[k] != d[k]} - {"profile"}
-    assert changed == {"model.time_freqs", "model.time_net_width", "model.time_net_out",
+    assert changed == {"model.time_freqs", "model.time_net_width", "model.time_net_out", "stage1.lambda_normal",
                        "stage2.normal_offset", "stage2.env_quadrature"}
     small = flat(load_method_config("small"))
     assert all(d[k] == small[k] for k in changed)
