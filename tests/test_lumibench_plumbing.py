@@ -91,6 +91,7 @@ def test_demo_profile_is_ci_with_the_spheres_frames_and_named_settings():
     assert set(c) == set(d)
     changed = {k for k in c if c[k] != d[k]} - {"profile"}
     assert changed == {"model.time_freqs", "model.time_net_width", "model.time_net_out", "stage1.lambda_normal",
+                       "stage1.p_from_motion", "stage1.p_motion_relative", "stage1.p_motion_floor",
                        "stage2.normal_offset", "stage2.env_quadrature"}
     small = flat(load_method_config("small"))
     assert all(d[k] == small[k] for k in changed)
