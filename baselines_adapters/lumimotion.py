@@ -108,8 +108,10 @@ def parse_budget(spec: str) -> Budget:
 class LumiMotionAdapter(MethodAdapter):
     # the grid reuses a predictions folder of this version, others are redone. 2: relight_scaled/ (method/
     # predictions.py VERSION); 3: meta.json carries the relight diagnostic (the same predictions as 2), so a
-    # rescore of a version-2 folder predicts again (no training) and its results get the block
-    version = "3"
+    # rescore of a version-2 folder predicts again (no training) and its results get the block; 4: the normal
+    # map filtered before test-time shading where the profile asks (stage2.normal_filter; `small`), so stored
+    # version-3 predictions are shaded again from their checkpoints (no training)
+    version = "4"
 
     def __init__(self, name: str = "lumimotion", budget: str | None = None):
         base = name.split("@", 1)[0]
@@ -200,8 +202,9 @@ class LumiMotionAdapter(MethodAdapter):
         return keep
 
 
-def _reusable_record(path: Path, views: int) -> dict | None:
-    """The stored diagnostic record at ``path`` when it has the current steps and all ``views`` test views."""
+def _reusable_record(path: Path, views: int, normal_filter: float = 0.0) -> dict | None:
+    """The stored diagnostic record at ``path`` when it has the current steps, all ``views`` test views and
+    the run's test-time normal filter (a record from before the setting: none)."""
     import json
 
     from method.diagnose import STEPS
@@ -213,6 +216,8 @@ def _reusable_record(path: Path, views: int) -> dict | None:
     steps = rec.get("steps") if isinstance(rec, dict) else None
     if not isinstance(steps, dict) or set(steps) != {name for name, _ in STEPS} or rec.get("views") != views:
         return None
+    if float(rec.get("normal_filter", 0.0)) != float(normal_filter):
+        return None
     return rec
 
 
@@ -223,10 +228,13 @@ def diagnose_block(run_dir: Path, scene_dir: Path, test_light: str) -> dict:
     from method import diagnose as dg
     from method.relight import read_run_config
 
+    from method.shading.deferred import normal_filter_sigma
+
     views = len(layout.read_transforms(scene_dir, "test").frames)
-    rec = _reusable_record(Path(run_dir) / "diagnose" / test_light / "diagnose.json", views)
+    s2 = read_run_config(run_dir)["stage2"]
+    rec = _reusable_record(Path(run_dir) / "diagnose" / test_light / "diagnose.json", views, normal_filter_sigma(s2))
     if rec is None:
-        dirs = min(int(read_run_config(run_dir)["stage2"]["dirs_eval"]), DIAGNOSE_MAX_DIRS)
+        dirs = min(int(s2["dirs_eval"]), DIAGNOSE_MAX_DIRS)
         # the scene the benchmark scores on (the static variant trained on its static twin)
         rec = dg.diagnose(run_dir, test_light, dirs=dirs, data=scene_dir, progress=False)
     return {"views": int(rec["views"]), "dirs": int(rec["dirs"]), "protocol": str(rec.get("protocol", "lumimotion")),

@@ -33,7 +33,8 @@ from method.data import load_scene
 from method.devices import check_device
 from method.relight import read_run_config, resolve_scene_dir
 from method.outputs import write_sheet
-from method.shading.deferred import accel_for, display, pixel_inputs, raster_materials, tracer_for
+from method.shading.deferred import (accel_for, display, normal_filter_sigma, pixel_inputs, test_time_raster,
+                                     tracer_for)
 from method.shading.envmap import load_envmap
 from method.shading.render import shade_maps
 
@@ -96,7 +97,7 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
     preds, gts, masks = [], [], []
     for v in test:
         d = scene.deform(v.time, p_mode="inference")
-        r = raster_materials(d, mats, v.camera, bg)
+        r = test_time_raster(d, mats, v.camera, bg, s2)
         renders.append((d, r))
         a = r.alpha.clamp(0, 1)
         preds.append(srgb_to_linear(buffers.channel(r.features, a, MATERIALS.albedo)).cpu().numpy())
@@ -157,7 +158,8 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
     for name, _ in STEPS:
         summary[name]["psnr_gain"] = summary[name]["psnr"] - summary["ours"]["psnr"]
     record = {"run": str(run_dir), "scene": scene_dir.name, "train_light": ident["light"], "test_light": test_light,
-              "views": len(test), "dirs": n_dirs, "albedo_scale": [float(c) for c in scale],
+              "views": len(test), "dirs": n_dirs, "normal_filter": normal_filter_sigma(s2),
+              "albedo_scale": [float(c) for c in scale],
               "protocol": "lumimotion", "steps": summary,
               "per_view_psnr": {name: [s["psnr"] for s in scores[name]] for name, _ in STEPS}}
     out = Path(out) if out else run_dir / "diagnose" / test_light

@@ -20,7 +20,8 @@ from method.outputs import write_p_maps
 from method.shading.deferred import display, render_pbr_view
 from method.devices import device_name
 
-VERSION = "2"  # 2: relight_scaled/ (the albedo scaled before shading, for the lumimotion protocol)
+VERSION = "3"  # 2: relight_scaled/ (the albedo scaled before shading, for the lumimotion protocol); 3: the test-time
+# normal filter (stage2.normal_filter), recorded in the run's config.yaml and so in settings_sha256
 
 
 def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, method: str = "lumimotion",
@@ -46,6 +47,7 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
                               "writing predictions")
     pred = run_dir / "predictions"
     (pred / "meta.json").unlink(missing_ok=True)
+    run_record.record_prediction_settings(run_dir, cfg)  # how these predictions are shaded (test-time settings)
     data = load_scene(scene_dir, light, cfg["data"]["background"], dev)
     if albedo_from_colour:
         ck = final_stage1(run_dir, dev)

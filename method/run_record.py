@@ -32,7 +32,13 @@ SECTIONS = {1: ("profile", "model", "data", "stage1"), 2: ("profile", "model", "
 PREDATING = {"model.mlp_precision": "fp32",  # session 19
              "stage1.p_motion_floor": 0.0,  # session 20
              "stage2.env_fit_colour": False,  # session 27
-             "model.deform_nodes": 0}  # session 28
+             "model.deform_nodes": 0,  # session 28
+             "stage2.normal_filter": 0.0}  # session 38
+# settings that decide only how a trained run is shaded at test time (its predictions, relighting, the
+# diagnostic), not what its stages train: a resume or the next stage does not compare them, and writing the
+# predictions records the value they were written with (record_prediction_settings), so the run's settings
+# hash tells predictions shaded one way from the other
+TEST_TIME = ("stage2.normal_filter",)
 # stage-1 settings only the deformation network and the P split read (method/stage1.py: the split runs only
 # when the scene is not static, the network's optimiser and the dynamic loss terms only when it has one): a
 # static run neither compares nor hashes them, so a change to the split does not set its static runs apart
@@ -125,7 +131,7 @@ def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:
         a = {**{k: v for k, v in PREDATING.items() if k.startswith(f"{sec}.")}, **a}
         b = _flat(cfg[sec], sec) if isinstance(cfg[sec], dict) else {sec: cfg[sec]}
         diffs += [f"{k}={a[k]!r} (this command: {b[k]!r})" for k in sorted(a.keys() & b.keys())
-                  if a[k] != b[k] and k not in ignored]
+                  if a[k] != b[k] and k not in ignored and k not in TEST_TIME]
     if diffs:
         more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
         raise UserError(f"{what}: {run_dir} was trained with {'; '.join(diffs[:3])}{more}: pass the run's own "
@@ -189,6 +195,27 @@ def record_stage2(run_dir: Path, cfg: dict) -> None:
         return
     rec["stage2"] = dict(cfg["stage2"])
     atomic_write_text(Path(run_dir) / "config.yaml", yaml.safe_dump(rec, sort_keys=False))
+
+
+def record_prediction_settings(run_dir: Path, cfg: dict) -> None:
+    """Put the :data:`TEST_TIME` settings of ``cfg`` that the run's predictions are being written with into
+    config.yaml (the training sections stay as trained), so its settings hash says how they were shaded."""
+    rec = read_record(run_dir)
+    if rec is None:
+        return
+    changed = False
+    for key in TEST_TIME:
+        sec, name = key.split(".", 1)
+        if sec not in cfg or name not in cfg[sec]:
+            continue
+        part = rec.setdefault(sec, {})
+        if not isinstance(part, dict):
+            continue
+        if part.get(name, PREDATING.get(key)) != cfg[sec][name] or name not in part:
+            part[name] = cfg[sec][name]
+            changed = True
+    if changed:
+        atomic_write_text(Path(run_dir) / "config.yaml", yaml.safe_dump(rec, sort_keys=False))
 
 
 class RunLock:

@@ -5,6 +5,8 @@ map fit, relighting and the benchmark predictions all shade through here.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from lumibench.color import linear_to_srgb, srgb_to_linear
@@ -13,6 +15,7 @@ from method.buffers import MATERIALS
 from method.model.materials import Materials
 from method.model.scene import Deformed, DynamicScene
 from method.shading.envmap import luminance, texel_solid_angles
+from method.shading.normal_filter import edge_aware_normals
 from method.shading.render import shade, shade_maps
 from method.shading.visibility import GaussianTracer, build_accel, lifted_points
 from method.splat.camera import Camera
@@ -31,6 +34,24 @@ def raster_materials(d: Deformed, mats: Materials, camera: Camera, background: t
                          p=d.p)
     return rasterize(d.means, d.quats, d.scales, d.opacities, feats, camera,
                      buffers.background_for(MATERIALS, background, feats))
+
+
+def normal_filter_sigma(s2: dict) -> float:
+    """The test-time normal filter's sigma in pixels (``stage2.normal_filter``); a run recorded before the
+    setting existed shaded without it (0, run_record.PREDATING)."""
+    return float(s2.get("normal_filter", 0.0))
+
+
+def test_time_raster(d: Deformed, mats: Materials, camera: Camera, background: torch.Tensor,
+                     s2: dict) -> RasterOutput:
+    """:func:`raster_materials` as test-time shading reads it (predictions, relighting, the diagnostic): the
+    normal map edge-aware filtered when ``stage2.normal_filter`` > 0 (method/shading/normal_filter.py).
+    Stage 2's training shades the unfiltered normals (filtering there as well costs albedo)."""
+    out = raster_materials(d, mats, camera, background)
+    sigma = normal_filter_sigma(s2)
+    if sigma <= 0:
+        return out
+    return dataclasses.replace(out, normal=edge_aware_normals(out.normal, out.alpha, out.depth_median, sigma))
 
 
 def accel_for(d: Deformed, cell_factor: float = 1.0, opacities: torch.Tensor | None = None) -> TraceAccel:
@@ -140,7 +161,7 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
     each map, shaded with the albedo scaled per channel (the same directions and traversals)."""
     s2 = cfg["stage2"]
     d = scene.deform(t, p_mode="inference")
-    out = raster_materials(d, mats, camera, background)
+    out = test_time_raster(d, mats, camera, background, s2)
     H, W = camera.height, camera.width
     a = out.alpha.clamp(0, 1)
     fg = torch.nonzero((a > 0.5).reshape(-1)).squeeze(1)
