@@ -104,6 +104,21 @@ def test_adapter_diagnoses_each_test_light_once_and_reuses_the_record(tmp_path, 
     adapter.run(scene, "city", ["sunset"], 0, "ci", run / "predictions", runs)
     assert [c["light"] for c in calls[2:]] == ["sunset", "sunset"]
 
+    # a record made under another test-time normal filter than the run's record says is computed again
+    # (predictions written again with stage2.normal_filter record the new value in config.yaml)
+    rec = _record("sunset", 3, 64)
+    atomic_write_json(run / "diagnose" / "sunset" / "diagnose.json", rec)
+    adapter.run(scene, "city", ["sunset"], 0, "ci", run / "predictions", runs)
+    assert len(calls) == 4  # no filter either side (a record from before the setting): reused
+    (run / "config.yaml").write_text("run: {light: city, seed: 0}\nprofile: ci\n"
+                                     "stage2: {dirs_eval: 256, normal_filter: 1.0}\n")
+    adapter.run(scene, "city", ["sunset"], 0, "ci", run / "predictions", runs)
+    assert len(calls) == 5
+    atomic_write_json(run / "diagnose" / "sunset" / "diagnose.json", {**rec, "normal_filter": 1.0})
+    adapter.run(scene, "city", ["sunset"], 0, "ci", run / "predictions", runs)
+    assert len(calls) == 5
+    _finished_run(run)
+
     # a small dirs_eval is not raised to the cap
     small = _finished_run(runs / "wo_dc" / "fake" / "city" / "seed0", dirs_eval=64)
     get_adapter("wo_dc").run(scene, "city", ["sunrise"], 0, "ci", small / "predictions", runs)
