@@ -227,7 +227,6 @@ def diagnose_block(run_dir: Path, scene_dir: Path, test_light: str) -> dict:
     from lumibench import layout
     from method import diagnose as dg
     from method.relight import read_run_config
-
     from method.shading.deferred import normal_filter_sigma
 
     views = len(layout.read_transforms(scene_dir, "test").frames)

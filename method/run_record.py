@@ -211,7 +211,7 @@ def record_prediction_settings(run_dir: Path, cfg: dict) -> None:
         part = rec.setdefault(sec, {})
         if not isinstance(part, dict):
             continue
-        if part.get(name, PREDATING.get(key)) != cfg[sec][name] or name not in part:
+        if part.get(name) != cfg[sec][name]:  # also when the record predates the key
             part[name] = cfg[sec][name]
             changed = True
     if changed:
