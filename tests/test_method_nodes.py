@@ -173,3 +173,34 @@ def test_a_checkpoint_with_session_29s_motion_placement_is_refused():
     st["motion"] = torch.zeros(40, 15, dtype=torch.float64)
     with pytest.raises(UserError, match="train the run again"):
         MotionNodes.from_state(st, "cpu")
+
+
+def test_blend_all_values_and_gradients_match_a_per_gaussian_brute_force():
+    """The three network outputs blended in one gather (blend_all): values and the gradients of the node
+    values and the positions (through the weights) as a per-Gaussian loop computes them, in float64."""
+    x = _points(80, seed=4)
+    mn = MotionNodes(20)
+    mn.choose(x)
+    moved = (x + 0.01 * _points(80, seed=5)).requires_grad_(True)
+    outs = tuple(_points(20, seed=s)[:, :c].clone().requires_grad_(True) for s, c in ((6, 3), (7, 2), (8, 1)))
+    w = mn.weights(moved)
+    got = mn.blend_all(outs, w)
+    assert [g.shape for g in got] == [(80, 3), (80, 2), (80, 1)]
+    probe = [torch.randn(g.shape, generator=torch.Generator().manual_seed(i), dtype=g.dtype) for i, g in enumerate(got)]
+    sum((g * p).sum() for g, p in zip(got, probe)).backward()
+    grads = [moved.grad.clone()] + [o.grad.clone() for o in outs]
+    moved.grad = None
+    for o in outs:
+        o.grad = None
+    ref_loss = 0.0
+    for i in range(80):
+        near = mn.index[i]
+        d2 = ((moved[i] - mn.nodes[near]) ** 2).sum(-1)
+        wi = torch.softmax(-d2 / (2 * mn.sigma[near] ** 2), 0)
+        for o, p, g in zip(outs, probe, got):
+            val = (wi[:, None] * o[near]).sum(0)
+            assert torch.allclose(g[i], val.detach(), atol=1e-12)
+            ref_loss = ref_loss + (val * p[i]).sum()
+    ref_loss.backward()
+    for a, b in zip(grads, [moved.grad] + [o.grad for o in outs]):
+        assert torch.allclose(a, b, atol=1e-10)

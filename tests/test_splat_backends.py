@@ -321,6 +321,52 @@ def test_a_training_alone_gives_the_kernels_torchs_threads_and_torch_one():
     assert out.stdout.strip() == "[(2, 1, 2), 2, (1, 1, 1), 1, (2, 2, 2), 2]", out.stdout + out.stderr
 
 
+def test_the_network_runs_on_the_kernels_threads_forward_and_backward():
+    """on_the_kernels_threads (the deformation network in a training alone): torch on both threads while the
+    network runs forward and while its backward runs, on one before and after each (the loss and Adam stay on
+    one), whether or not the input needs a gradient; the values and gradients are the plain call's. Outside
+    kernels_take_the_threads (a grid worker) nothing is switched. In a fresh process with a pool of two."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import torch\nfrom method.splat.backend import kernels_take_the_threads, on_the_kernels_threads\n"
+            "from method.model.deform import DeformNet\n"
+            "torch.manual_seed(0)\nnet = DeformNet(3, 16, 1, 3, 2, 8, 6).double()\n"
+            "for h in (net.d_mu, net.d_rot, net.d_col):\n    torch.nn.init.normal_(h.weight)\n"
+            "seen = []\n"
+            "class Spy(torch.autograd.Function):\n"
+            "    @staticmethod\n    def forward(ctx, a):\n        seen.append(('f', torch.get_num_threads()))\n"
+            "        return a.view_as(a)\n"
+            "    @staticmethod\n    def backward(ctx, g):\n        seen.append(('b', torch.get_num_threads()))\n"
+            "        return g\n"
+            "def fn(x, t):\n    return tuple(Spy.apply(o) for o in net(Spy.apply(x), t))\n"
+            "def grads(x, call):\n    net.zero_grad()\n    out = call(fn, x, 0.4)\n"
+            "    mid = torch.get_num_threads()\n    sum((o * o).sum() for o in out).backward()\n"
+            "    return mid, torch.get_num_threads(), [p.grad.clone() for p in net.parameters()]\n"
+            "torch.set_num_threads(2)\n"
+            "res = []\n"
+            "for needs in (False, True):\n"
+            "    x = torch.rand(50, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))\n"
+            "    x.requires_grad_(needs)\n"
+            "    with kernels_take_the_threads(torch.device('cpu')):\n"
+            "        ref = grads(x.detach(), lambda f, x, t: f(x, t))\n"
+            "        seen.clear()\n"
+            "        mid, after, g = grads(x, on_the_kernels_threads)\n"
+            "        same = all(torch.allclose(a, b, rtol=1e-12, atol=0) for a, b in zip(g, ref[2]))\n"
+            "        res.append((mid, after, sorted(set(seen)), same))\n"
+            "seen.clear()\ngrads(torch.rand(5, 3, dtype=torch.float64), on_the_kernels_threads)\n"
+            "res.append(sorted(set(seen)))\nprint(res)\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    env["NUMBA_NUM_THREADS"] = "2"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    # (torch's threads after the forward, after the backward, those seen inside the network, grads equal);
+    # last: outside a training alone, the network ran on the process's two threads, unswitched
+    want = "[(1, 1, [('b', 2), ('f', 2)], True), (1, 1, [('b', 2), ('f', 2)], True), [('b', 2), ('f', 2)]]"
+    assert out.stdout.strip() == want, out.stdout + out.stderr
+
+
 def test_setup_warm_up_compiles_every_kernel():
     """`make setup` runs method.splat.warm so a first training does not compile: in a fresh process (the
     on-disk cache loads, or compiles, only what is called) every public kernel must have a signature after

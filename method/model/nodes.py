@@ -73,6 +73,7 @@ class MotionNodes:
         self.nodes: torch.Tensor | None = None   # (M, 3) normalised canonical positions
         self.sigma: torch.Tensor | None = None   # (M,)
         self.index: torch.Tensor | None = None   # (N, K) each Gaussian's nearest nodes
+        self._near: tuple[torch.Tensor, torch.Tensor] | None = None  # nodes[index], sigma[index]: fixed per choice
 
     def stale(self, n: int) -> bool:
         return self.index is None or self.index.shape[0] != n
@@ -90,17 +91,32 @@ class MotionNodes:
             sigma = torch.ones(1, dtype=x.dtype, device=x.device)
         self.nodes, self.sigma = nodes, sigma.clamp_min(1e-6)
         self.index = nearest(x, nodes, K_NEIGHBOURS)[1]
+        self._near = None
 
     def weights(self, x: torch.Tensor) -> torch.Tensor:
         """(N, K) blend weights of each row of ``x`` over its nearest nodes (rows sum to 1)."""
-        nb = self.nodes[self.index]                       # (N, K, 3)
+        if self._near is None:  # gathered once per choice, not at every call (both are constants until then)
+            self._near = (self.nodes[self.index], self.sigma[self.index])
+        nb, s = self._near                                # (N, K, 3), (N, K)
         d2 = ((x[:, None, :] - nb) ** 2).sum(-1)          # (N, K)
-        s = self.sigma[self.index]
-        return torch.softmax(-d2 / (2.0 * s * s), dim=-1)
+        a = -d2 / (2.0 * s * s)
+        # softmax over the K = 4 columns written out: torch's softmax along a last dimension of 4 took 2.3 ms
+        # forward + backward at 20k rows, these five ops 0.9 (the max is a shift the result does not depend on)
+        e = torch.exp(a - a.detach().amax(-1, keepdim=True))
+        return e / e.sum(-1, keepdim=True)
 
     def blend(self, values: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        """(N, C): each row's weighted sum of its nodes' ``values`` (M, C)."""
-        return (values[self.index] * w[..., None]).sum(1)
+        """(N, C): each row's weighted sum of its nodes' ``values`` (M, C). One index_select of the
+        flattened (N K) index: its backward is an index_add, where indexing with the (N, K) index
+        accumulates through a sort (BENCHMARKS.md, issue 23, session 39)."""
+        n, k = self.index.shape
+        picked = values.index_select(0, self.index.reshape(-1)).view(n, k, values.shape[1])
+        return (picked * w[..., None]).sum(1)
+
+    def blend_all(self, values: tuple[torch.Tensor, ...], w: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``blend`` of several (M, C_i) outputs at once: one gather and one product for all of them."""
+        out = self.blend(torch.cat(values, 1), w)
+        return out.split([v.shape[1] for v in values], 1)
 
     def state(self) -> dict:
         return {"count": self.count, "nodes": None if self.nodes is None else self.nodes.cpu(),

@@ -12,6 +12,7 @@ from method.buffers import STAGE1
 from method.model.deform import DeformNet, binary_concrete
 from method.model.gaussians import Gaussians
 from method.model.nodes import MotionNodes
+from method.splat.backend import on_the_kernels_threads
 from method.splat.camera import Camera
 from method.splat.rasterize import RasterOutput, rasterize
 
@@ -60,11 +61,11 @@ class DynamicScene:
         """(d mu, d r, d c) at the normalised positions ``x`` (one row per Gaussian) and time ``t``: the
         network at every row, or at the nodes blended to every row (method/model/nodes.py)."""
         if self.nodes is None:
-            return self.net(x, t)
+            return on_the_kernels_threads(self.net, x, t)
         if self.nodes.stale(x.shape[0]):
             self.nodes.choose(x)
         w = self.nodes.weights(x)
-        return tuple(self.nodes.blend(v, w) for v in self.net(self.nodes.nodes, t))
+        return self.nodes.blend_all(on_the_kernels_threads(self.net, self.nodes.nodes, t), w)
 
     def p_inference(self) -> torch.Tensor:
         return binary_concrete(self.g.t["p_logit"], self.temperature, training=False)

@@ -75,8 +75,9 @@ def kernels_take_the_threads(device: torch.device):
     Why: torch's many small ops at the `small` sizes (the loss on 128 x 128 images, Adam over ~20k
     Gaussians) ran twice as slow on two threads as on one, while the kernels gain from the second. A
     whole `make train PROFILE=small` alone on 2 cores: stage 2 1.20x faster (211 s against 253), stage 1
-    level (442 against 428 s: the network loses on one thread what the loss and the step gain), 16 % less
-    CPU in all (BENCHMARKS.md, "small alone on 2 cores"). Yields the kernels' thread count."""
+    level (442 against 428 s: the network lost on one thread what the loss and the step gained), 16 % less
+    CPU in all (BENCHMARKS.md, "small alone on 2 cores"); the network now takes every thread back for its
+    own products (``on_the_kernels_threads``). Yields the kernels' thread count."""
     global _kernel_threads
     budget = torch.get_num_threads()
     if device.type != "cpu" or budget <= 1 or resolve(None, device) != "numba" or _kernel_threads is not None:
@@ -89,3 +90,44 @@ def kernels_take_the_threads(device: torch.device):
     finally:
         _kernel_threads = None
         torch.set_num_threads(budget)
+
+
+class _SetThreadsOnBackward(torch.autograd.Function):
+    """Identity on its tensors; its backward sets torch's thread count to ``n`` before passing the
+    gradients on (so the ops upstream of it in the graph, backward, run on ``n`` threads)."""
+
+    @staticmethod
+    def forward(ctx, n, *xs):
+        ctx.n = n
+        return tuple(x.view_as(x) for x in xs)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        torch.set_num_threads(ctx.n)
+        return (None,) + grads
+
+
+def on_the_kernels_threads(fn, x: torch.Tensor, *args):
+    """``fn(x, *args)`` (a tuple of tensors: the deformation network) with torch on every thread of a
+    training alone, forward and backward, where ``kernels_take_the_threads`` left torch one.
+
+    Why: the network's products at 4,096 nodes are large enough to gain from a second core, unlike the
+    small ops the one thread is for (a `small` stage-1 step: BENCHMARKS.md, issue 23, session 39). The
+    backward switches by two markers in the graph: one after the network (its backward sets all threads
+    before the network's backward runs) and one before it (set back to one thread after it), the second
+    fed by a throw-away leaf so that it runs whether or not ``x`` needs a gradient."""
+    n = _kernel_threads
+    if n is None or n <= 1:
+        return fn(x, *args)
+    grad = torch.is_grad_enabled()
+    if grad:
+        anchor = torch.zeros((), dtype=x.dtype, device=x.device, requires_grad=True)
+        x, _ = _SetThreadsOnBackward.apply(1, x, anchor)
+    torch.set_num_threads(n)
+    try:
+        out = fn(x, *args)
+    finally:
+        torch.set_num_threads(1)
+    if grad and any(o.requires_grad for o in out):
+        out = _SetThreadsOnBackward.apply(n, *out)
+    return out
