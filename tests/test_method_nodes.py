@@ -204,3 +204,44 @@ def test_blend_all_values_and_gradients_match_a_per_gaussian_brute_force():
     ref_loss.backward()
     for a, b in zip(grads, [moved.grad] + [o.grad for o in outs]):
         assert torch.allclose(a, b, atol=1e-10)
+
+
+def test_compiled_blend_matches_the_torch_reference_values_and_gradients():
+    """The compiled blend (method/model/blend_numba.py, what a CPU training runs) against MotionNodes.weights +
+    blend_all (the reference, and the CUDA path): the blended outputs and the gradients of the positions and of
+    the node values, in float64, on one thread and on two (its per-thread sums)."""
+    pytest.importorskip("numba")
+    import numba
+
+    from method.splat import backend
+
+    x = _points(300, seed=9)
+    mn = MotionNodes(40)
+    mn.choose(x)
+    moved = (x + 0.02 * _points(300, seed=10)).requires_grad_(True)
+    outs = tuple(_points(40, seed=s)[:, :c].clone().requires_grad_(True) for s, c in ((11, 3), (12, 3), (13, 2)))
+    probe = [_points(300, seed=20 + i)[:, :o.shape[1]] for i, o in enumerate(outs)]
+
+    def run(name):
+        backend.set_backend(name)
+        try:
+            got = mn.blend_outputs(moved, outs)
+        finally:
+            backend.set_backend("auto")
+        grads = torch.autograd.grad(sum((g * p).sum() for g, p in zip(got, probe)), (moved,) + outs)
+        return [g.detach() for g in got], grads
+
+    ref_vals, ref_grads = run("torch")
+    assert float(ref_grads[0].abs().max()) > 1e-3  # the positions get a gradient through the weights
+    threads = torch.get_num_threads()  # the kernels follow torch's count (raster_numba.match_torch_threads)
+    try:
+        for n in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)}):
+            torch.set_num_threads(n)
+            vals, grads = run("numba")
+            assert numba.get_num_threads() == n
+            for a, b in zip(vals, ref_vals):
+                assert torch.allclose(a, b, rtol=0, atol=1e-12)
+            for a, b in zip(grads, ref_grads):
+                assert torch.allclose(a, b, rtol=0, atol=1e-11)
+    finally:
+        torch.set_num_threads(threads)

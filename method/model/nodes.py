@@ -21,6 +21,7 @@ sunrise, three seeds each of hook and the mouse, it was even on average and cost
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from lumibench.errors import UserError
@@ -74,6 +75,7 @@ class MotionNodes:
         self.sigma: torch.Tensor | None = None   # (M,)
         self.index: torch.Tensor | None = None   # (N, K) each Gaussian's nearest nodes
         self._near: tuple[torch.Tensor, torch.Tensor] | None = None  # nodes[index], sigma[index]: fixed per choice
+        self._near_f64: tuple | None = None  # the same (and index) as numpy arrays for the compiled blend
 
     def stale(self, n: int) -> bool:
         return self.index is None or self.index.shape[0] != n
@@ -91,13 +93,11 @@ class MotionNodes:
             sigma = torch.ones(1, dtype=x.dtype, device=x.device)
         self.nodes, self.sigma = nodes, sigma.clamp_min(1e-6)
         self.index = nearest(x, nodes, K_NEIGHBOURS)[1]
-        self._near = None
+        self._near = self._near_f64 = None
 
     def weights(self, x: torch.Tensor) -> torch.Tensor:
         """(N, K) blend weights of each row of ``x`` over its nearest nodes (rows sum to 1)."""
-        if self._near is None:  # gathered once per choice, not at every call (both are constants until then)
-            self._near = (self.nodes[self.index], self.sigma[self.index])
-        nb, s = self._near                                # (N, K, 3), (N, K)
+        nb, s = self.weights_constants()                  # (N, K, 3), (N, K): constants until the next choice
         d2 = ((x[:, None, :] - nb) ** 2).sum(-1)          # (N, K)
         a = -d2 / (2.0 * s * s)
         # softmax over the K = 4 columns written out: torch's softmax along a last dimension of 4 took 2.3 ms
@@ -117,6 +117,27 @@ class MotionNodes:
         """``blend`` of several (M, C_i) outputs at once: one gather and one product for all of them."""
         out = self.blend(torch.cat(values, 1), w)
         return out.split([v.shape[1] for v in values], 1)
+
+    def blend_outputs(self, x: torch.Tensor, values: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+        """``blend_all(values, weights(x))``: by the compiled kernel (method/model/blend_numba.py) where the
+        splat backend resolves to Numba (CPU tensors), by the torch reference otherwise (CUDA)."""
+        from method.splat.backend import resolve
+
+        if resolve(None, x.device) != "numba":
+            return self.blend_all(values, self.weights(x))
+        from method.model.blend_numba import as_f64, blend_at_nodes
+
+        if self._near_f64 is None:
+            nb, s = self.weights_constants()
+            self._near_f64 = (np.ascontiguousarray(self.index.cpu().numpy().astype(np.int64)), as_f64(nb), as_f64(s))
+        out = blend_at_nodes(x, torch.cat(values, 1), *self._near_f64)
+        return out.split([v.shape[1] for v in values], 1)
+
+    def weights_constants(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(nodes[index] (N, K, 3), sigma[index] (N, K)): gathered once per choice."""
+        if self._near is None:
+            self._near = (self.nodes[self.index], self.sigma[self.index])
+        return self._near
 
     def state(self) -> dict:
         return {"count": self.count, "nodes": None if self.nodes is None else self.nodes.cpu(),

@@ -64,8 +64,7 @@ class DynamicScene:
             return on_the_kernels_threads(self.net, x, t)
         if self.nodes.stale(x.shape[0]):
             self.nodes.choose(x)
-        w = self.nodes.weights(x)
-        return self.nodes.blend_all(on_the_kernels_threads(self.net, self.nodes.nodes, t), w)
+        return self.nodes.blend_outputs(x, on_the_kernels_threads(self.net, self.nodes.nodes, t))
 
     def p_inference(self) -> torch.Tensor:
         return binary_concrete(self.g.t["p_logit"], self.temperature, training=False)
@@ -105,17 +104,17 @@ class DynamicScene:
             if key not in trunk_cache:
                 with torch.no_grad():
                     if self.nodes is None:
-                        h, w = self.net.trunk(x, t), None
-                        trunk_cache[key] = (h, *self.net.heads(h)[:2], w)
+                        h = self.net.trunk(x, t)
+                        trunk_cache[key] = (h, *self.net.heads(h)[:2])
                     else:
                         if self.nodes.stale(n):
                             self.nodes.choose(x)
-                        h, w = self.net.trunk(self.nodes.nodes, t), self.nodes.weights(x)
-                        trunk_cache[key] = (h, *(self.nodes.blend(v, w) for v in self.net.heads(h)[:2]), w)
-            h, d_mu, d_rot, w = trunk_cache[key]
+                        h = self.net.trunk(self.nodes.nodes, t)
+                        trunk_cache[key] = (h, *self.nodes.blend_outputs(x, self.net.heads(h)[:2]))
+            h, d_mu, d_rot = trunk_cache[key]
             d_col = self.net.heads(h)[2]  # the heads' one product, as uncached (the frozen ones cost nothing)
-            if w is not None:
-                d_col = self.nodes.blend(d_col, w)
+            if self.nodes is not None:  # blended as uncached: each output channel is blended on its own
+                d_col = self.nodes.blend_outputs(x, (d_col,))[0]
         if not self.delta_colour:
             d_col = torch.zeros_like(d_col)
         pc = p[:, None]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
 import torch
 
 
@@ -17,15 +18,16 @@ def kernels() -> dict:
     helper (a leading underscore: compiled into its callers, never on its own)."""
     from numba.core.registry import CPUDispatcher
 
+    from method.model import blend_numba
     from method.splat import raster_numba, trace_numba
 
-    return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f for mod in (raster_numba, trace_numba)
+    return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f for mod in (raster_numba, trace_numba, blend_numba)
             for name, f in vars(mod).items() if isinstance(f, CPUDispatcher) and not name.startswith("_")}
 
 
 def warm() -> list[str]:
     """Run each compiled kernel once (raster forward + backward with screen offsets, visibility and hit
-    tracing); return the names of the kernels now compiled. Raises ImportError without Numba."""
+    tracing, the nodes' blend); return the names of the kernels now compiled. Raises ImportError without Numba."""
     import numba  # noqa: F401  (the point: nothing to warm without it)
 
     from method.splat.bench import make_scene, make_trace_queries, raster_loss
@@ -41,6 +43,12 @@ def warm() -> list[str]:
         accel = TraceAccel.build(*[p.detach() for p in params[:4]])
         trace(*[p.detach() for p in params[:4]], None, o, d, 0.02, accel=accel, backend="numba")  # visibility
     trace(*params, o, d, 0.02, accel=accel, backend="numba")[1].sum().backward()  # hits, differentiable
+    from method.model.blend_numba import blend_at_nodes  # the nodes' blend (model.deform_nodes)
+
+    x = params[0].detach().clone().requires_grad_(True)
+    index = np.zeros((x.shape[0], 4), np.int64)
+    near, sigma = np.zeros((x.shape[0], 4, 3)), np.ones((x.shape[0], 4))
+    blend_at_nodes(x, torch.ones(1, 3, requires_grad=True), index, near, sigma).sum().backward()
     return [name for name, f in kernels().items() if f.signatures]
 
 
