@@ -264,6 +264,34 @@ def test_texel_moments_integrate_the_cosine_over_each_texel():
     assert torch.allclose(cosine_weights(n[:1], m)[0], dense, atol=2e-5)
 
 
+def test_compiled_cosine_weights_match_the_torch_reference():
+    """The compiled quadrature (method/shading/quadrature_numba.py, what a CPU stage 2 runs) against the torch
+    reference: the weights and their gradient w.r.t. the normals in float64, on one and on two threads;
+    normals near the horizon of some cells included (the clamp's kink)."""
+    pytest.importorskip("numba")
+    from method.shading.envmap import cosine_weights_torch
+    from method.shading.quadrature_numba import cosine_weights_compiled
+
+    m = texel_moments(8, 16, 4, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(5)
+    n = _unit(torch.randn(38, 3, generator=gen, dtype=torch.float64))  # 41 rows in all: an odd count for the 2 threads
+    n = torch.cat([n, torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.3, -0.2, 0.01]], dtype=torch.float64)])
+    n = _unit(n).requires_grad_(True)
+    g = torch.randn(n.shape[0], 128, generator=gen, dtype=torch.float64)
+    ref = cosine_weights_torch(n, m)
+    ref_g, = torch.autograd.grad((ref * g).sum(), n)
+    threads = torch.get_num_threads()  # the kernels follow torch's count
+    try:
+        for k in (1, 2):
+            torch.set_num_threads(k)
+            got = cosine_weights_compiled(n, m)
+            got_g, = torch.autograd.grad((got * g).sum(), n)
+            assert torch.allclose(got, ref, rtol=0, atol=1e-13)
+            assert torch.allclose(got_g, ref_g, rtol=0, atol=1e-11)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_env_quadrature_is_exact_unshadowed_and_unbiased_under_shadow():
     """The control variate (render.py): with nothing blocking, the diffuse term is the exact integral at
     any direction count; with a blocker, its mean over seeds is the plain estimator's (unbiased) and a

@@ -79,7 +79,20 @@ def texel_moments(height: int, width: int, sub: int = 4, device=None, dtype=torc
 
 
 def cosine_weights(normals: torch.Tensor, moments: torch.Tensor) -> torch.Tensor:
-    """(P, H * W): int over each texel of max(0, n . w) dw for unit normals (P, 3), from ``texel_moments``."""
+    """(P, H * W): int over each texel of max(0, n . w) dw for unit normals (P, 3), from ``texel_moments``.
+    By the compiled kernel (method/shading/quadrature_numba.py) where the splat backend resolves to Numba
+    (CPU tensors), by the torch reference below otherwise."""
+    from method.splat.backend import resolve
+
+    if resolve(None, normals.device) == "numba":
+        from method.shading.quadrature_numba import cosine_weights_compiled
+
+        return cosine_weights_compiled(normals, moments)
+    return cosine_weights_torch(normals, moments)
+
+
+def cosine_weights_torch(normals: torch.Tensor, moments: torch.Tensor) -> torch.Tensor:
+    """``cosine_weights`` in torch: the reference, and the CUDA path."""
     c = torch.einsum("pk,tsk->pts", normals, moments).clamp_min(0.0)
     return c.sum(-1)
 

@@ -19,15 +19,17 @@ def kernels() -> dict:
     from numba.core.registry import CPUDispatcher
 
     from method.model import blend_numba
+    from method.shading import quadrature_numba
     from method.splat import raster_numba, trace_numba
 
-    return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f for mod in (raster_numba, trace_numba, blend_numba)
+    return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f
+            for mod in (raster_numba, trace_numba, blend_numba, quadrature_numba)
             for name, f in vars(mod).items() if isinstance(f, CPUDispatcher) and not name.startswith("_")}
 
 
 def warm() -> list[str]:
     """Run each compiled kernel once (raster forward + backward with screen offsets, visibility and hit
-    tracing, the nodes' blend); return the names of the kernels now compiled. Raises ImportError without Numba."""
+    tracing, the nodes' blend, the diffuse quadrature); return the names of the kernels now compiled. Raises ImportError without Numba."""
     import numba  # noqa: F401  (the point: nothing to warm without it)
 
     from method.splat.bench import make_scene, make_trace_queries, raster_loss
@@ -49,6 +51,11 @@ def warm() -> list[str]:
     index = np.zeros((x.shape[0], 4), np.int64)
     near, sigma = np.zeros((x.shape[0], 4, 3)), np.ones((x.shape[0], 4))
     blend_at_nodes(x, torch.ones(1, 3, requires_grad=True), index, near, sigma).sum().backward()
+    from method.shading.envmap import texel_moments  # stage 2's exact diffuse quadrature
+    from method.shading.quadrature_numba import cosine_weights_compiled
+
+    nrm = torch.tensor([[0.0, 0.0, 1.0]], requires_grad=True)
+    cosine_weights_compiled(nrm, texel_moments(2, 4, 2)).sum().backward()
     return [name for name, f in kernels().items() if f.signatures]
 
 
