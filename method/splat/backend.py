@@ -115,7 +115,8 @@ def on_the_kernels_threads(fn, x: torch.Tensor, *args):
     small ops the one thread is for (a `small` stage-1 step: BENCHMARKS.md, issue 23, session 39). The
     backward switches by two markers in the graph: one after the network (its backward sets all threads
     before the network's backward runs) and one before it (set back to one thread after it), the second
-    fed by a throw-away leaf so that it runs whether or not ``x`` needs a gradient."""
+    fed by a throw-away leaf so that it runs whether or not ``x`` needs a gradient (the price: the first
+    layer's gradient w.r.t. its input, one small product)."""
     n = _kernel_threads
     if n is None or n <= 1:
         return fn(x, *args)
