@@ -284,15 +284,24 @@ def test_every_compiled_kernel_can_be_cached():
     assert uncachable == []
 
 
+def _run_in_a_fresh_process(code: str):
+    """Run ``code`` in a new Python process with Numba's pool at two threads and no thread count set (as on a
+    2-core machine with nothing set), from the repository root; the completed process (check=True)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    env["NUMBA_NUM_THREADS"] = "2"
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
 def test_compiled_kernels_leave_torchs_thread_count_alone():
     """Numba's OpenMP pool, started by the first compiled kernel, sets the process's OpenMP thread count, and
     torch reads the same one: a grid worker set to one thread (benchmark.jobgrid.execute) ran torch on two
     from then on. In a fresh process (the pool starts once): torch set to one thread stays at one, and the
     kernels run on one."""
-    import os
-    import subprocess
-    import sys
-
     code = ("import torch, numba; torch.set_num_threads(1)\n"
             "from method.splat.bench import make_scene, make_trace_queries\n"
             "from method.splat.rasterize import rasterize\nfrom method.splat.trace import trace\n"
@@ -300,10 +309,7 @@ def test_compiled_kernels_leave_torchs_thread_count_alone():
             "rasterize(m, q, s, o, f, cam, backend='numba')\nafter_raster = torch.get_num_threads()\n"
             "org, d = make_trace_queries(m, q, s, 8, 4)\ntrace(m, q, s, o, None, org, d, backend='numba')\n"
             "print(after_raster, torch.get_num_threads(), numba.get_num_threads())\n")
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    env["NUMBA_NUM_THREADS"] = "2"  # a pool of two, as on a 2-core machine with nothing set
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    out = _run_in_a_fresh_process(code)
     assert out.stdout.split() == ["1", "1", "1"], out.stdout + out.stderr
 
 
@@ -311,9 +317,6 @@ def test_a_training_alone_gives_the_kernels_torchs_threads_and_torch_one():
     """kernels_take_the_threads (what a training runs in): with torch on two threads, torch runs on one
     inside and the kernels on two, and torch gets its two back after; on one thread (a grid worker) or a
     GPU nothing changes. In a fresh process with a pool of two, as on the 2-core machine."""
-    import os
-    import subprocess
-    import sys
 
     code = ("import torch, numba\nfrom method.splat.backend import kernels_take_the_threads\n"
             "from method.splat.bench import make_scene\nfrom method.splat.rasterize import rasterize\n"
@@ -325,10 +328,7 @@ def test_a_training_alone_gives_the_kernels_torchs_threads_and_torch_one():
             "        out.append((k, torch.get_num_threads(), numba.get_num_threads()))\n"
             "    out.append(torch.get_num_threads())\n"
             "print(out)\n")
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    env["NUMBA_NUM_THREADS"] = "2"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    out = _run_in_a_fresh_process(code)
     # (kernels' count it yields, torch inside, Numba inside), then torch after
     assert out.stdout.strip() == "[(2, 1, 2), 2, (1, 1, 1), 1, (2, 2, 2), 2]", out.stdout + out.stderr
 
@@ -338,9 +338,6 @@ def test_the_network_runs_on_the_kernels_threads_forward_and_backward():
     network runs forward and while its backward runs, on one before and after each (the loss and Adam stay on
     one), whether or not the input needs a gradient; the values and gradients are the plain call's. Outside
     kernels_take_the_threads (a grid worker) nothing is switched. In a fresh process with a pool of two."""
-    import os
-    import subprocess
-    import sys
 
     code = ("import torch\nfrom method.splat.backend import kernels_take_the_threads, on_the_kernels_threads\n"
             "from method.model.deform import DeformNet\n"
@@ -369,10 +366,7 @@ def test_the_network_runs_on_the_kernels_threads_forward_and_backward():
             "        res.append((mid, after, sorted(set(seen)), same))\n"
             "seen.clear()\ngrads(torch.rand(5, 3, dtype=torch.float64), on_the_kernels_threads)\n"
             "res.append(sorted(set(seen)))\nprint(res)\n")
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    env["NUMBA_NUM_THREADS"] = "2"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    out = _run_in_a_fresh_process(code)
     # (torch's threads after the forward, after the backward, those seen inside the network, grads equal);
     # last: outside a training alone, the network ran on the process's two threads, unswitched
     want = "[(1, 1, [('b', 2), ('f', 2)], True), (1, 1, [('b', 2), ('f', 2)], True), [('b', 2), ('f', 2)]]"
