@@ -17,6 +17,7 @@ from method.model.density import DensityStats, densify_and_prune, reset_opacity
 from method.model.gaussians import GaussianAdam, Gaussians
 from method.model.nodes import REFRESH_EVERY, MotionNodes
 from method.model.scene import Deformed, DynamicScene, render
+from method.optim import adam
 from method.outputs import stage1_outputs
 from method.schedules import expon_lr
 from method.splat.camera import Camera
@@ -288,7 +289,7 @@ def make_optimisers(scene: DynamicScene, cfg: dict) -> tuple[GaussianAdam, torch
     lrs = {"means": s["lr_position"] * scene.extent, "quats": s["lr_rotation"], "log_scales": s["lr_scaling"],
            "opacity_logit": s["lr_opacity"], "colour_logit": s["lr_colour"], "p_logit": s["lr_p"]}
     gopt = GaussianAdam(scene.g, lrs)
-    nopt = torch.optim.Adam(scene.net.parameters(), lr=s["lr_mlp"], eps=1e-15) if scene.net is not None else None
+    nopt = adam(scene.net.parameters(), lr=s["lr_mlp"], eps=1e-15) if scene.net is not None else None
     return gopt, nopt
 
 

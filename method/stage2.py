@@ -26,6 +26,7 @@ from method.checkpoints import final_stage1, scene_from_checkpoint, scene_state
 from method.data import SceneData
 from method.env_fit import fit_env
 from method.model.materials import Materials
+from method.optim import adam
 from method.model.scene import DynamicScene
 from method.shading.deferred import (accel_for, display, raster_materials, render_pbr_view, shade_pixels,
                                      tracer_for)
@@ -61,7 +62,7 @@ def make_optimiser(scene: DynamicScene, mats: Materials, head: list, cfg: dict) 
     ]
     if head:
         groups.append({"params": head, "lr": s1["lr_mlp"] * s1["lr_mlp_final"] * f, "name": "dcol_head"})
-    return torch.optim.Adam(groups, eps=1e-15)
+    return adam(groups, eps=1e-15)
 
 
 def stage2_step_loss(scene: DynamicScene, mats: Materials, view, data_bg, cfg: dict, generator: torch.Generator,

@@ -11,6 +11,8 @@ import math
 
 import torch
 
+from method.optim import adam
+
 PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logit", "colour_logit", "p_logit")
 
 
@@ -107,7 +109,7 @@ class GaussianAdam:
         self.g = gaussians
         groups = [{"params": [gaussians.t[k]], "lr": lrs[k], "name": k} for k in PER_GAUSSIAN if k in lrs]
         self.names = [grp["name"] for grp in groups]
-        self.opt = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self.opt = adam(groups, lr=0.0, eps=1e-15)
 
     def set_lr(self, name: str, lr: float) -> None:
         for grp in self.opt.param_groups:
