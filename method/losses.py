@@ -19,7 +19,20 @@ def _window(dtype, device, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
 
 
 def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two (H, W, C) images (zero-padded 11 x 11 Gaussian window)."""
+    """Mean SSIM of two (H, W, C) images (zero-padded 11 x 11 Gaussian window), differentiable in ``img``
+    (``ref`` is the target). By the compiled kernel (method/ssim_numba.py) where the splat backend resolves
+    to Numba (CPU tensors), by the torch reference below otherwise."""
+    from method.splat.backend import resolve
+
+    if resolve(None, img.device) == "numba" and not ref.requires_grad:
+        from method.ssim_numba import ssim_compiled
+
+        return ssim_compiled(img, ref, _window(torch.float64, img.device))
+    return ssim_torch(img, ref)
+
+
+def ssim_torch(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """``ssim`` in torch (the blurs as grouped depthwise convolutions): the reference, and the CUDA path."""
     c = img.shape[-1]
     x = img.permute(2, 0, 1)[None]
     y = ref.permute(2, 0, 1)[None]

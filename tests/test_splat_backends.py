@@ -250,7 +250,7 @@ def test_setting_reaches_rasterize_and_trace(monkeypatch):
 def test_every_compiled_kernel_can_be_cached():
     """A kernel that reads a ctypes global (numba.get_num_threads() inside it did) cannot go to numba's
     on-disk cache, so every process compiles it again (~14 s for the raster forward): after a raster
-    forward + backward, a trace, the nodes' blend and the diffuse quadrature through the compiled backend, no
+    forward + backward, a trace, the nodes' blend, the diffuse quadrature and the SSIM through the compiled backend, no
     kernel they compiled holds one."""
     from numba.core.registry import CPUDispatcher
 
@@ -273,12 +273,18 @@ def test_every_compiled_kernel_can_be_cached():
     x = torch.rand(5, 3, requires_grad=True)
     bn.blend_at_nodes(x, torch.rand(2, 3), np.zeros((5, 2), np.int64), np.zeros((5, 2, 3)), np.ones((5, 2))).sum().backward()
     qn.cosine_weights_compiled(x, texel_moments(2, 4, 2)).sum().backward()
-    kernels = {f"{m.__name__}.{k}": v for m in (rn, tn, bn, qn) for k, v in vars(m).items()
+    import method.ssim_numba as sn  # the training SSIM
+    from method.losses import _window
+
+    sn.ssim_compiled(torch.rand(12, 12, 3, requires_grad=True), torch.rand(12, 12, 3),
+                     _window(torch.float64, "cpu")).backward()
+    kernels = {f"{m.__name__}.{k}": v for m in (rn, tn, bn, qn, sn) for k, v in vars(m).items()
                if isinstance(v, CPUDispatcher)}
     compiled = {name: k for name, k in kernels.items() if k.overloads}
     assert {"method.splat.raster_numba.forward", "method.splat.raster_numba.backward"} <= set(compiled)
     assert any(name.startswith("method.splat.trace_numba.") for name in compiled)
-    assert {"method.model.blend_numba.blend_backward", "method.shading.quadrature_numba.cosine_backward"} <= set(compiled)
+    assert {"method.model.blend_numba.blend_backward", "method.shading.quadrature_numba.cosine_backward",
+            "method.ssim_numba.ssim_backward", "method.ssim_numba._blur_plane"} <= set(compiled)
     uncachable = [name for name, k in compiled.items()
                   if k._cache is not None and any(c.library.has_dynamic_globals for c in k.overloads.values())]
     assert uncachable == []

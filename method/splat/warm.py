@@ -18,18 +18,19 @@ def kernels() -> dict:
     helper (a leading underscore: compiled into its callers, never on its own)."""
     from numba.core.registry import CPUDispatcher
 
+    from method import ssim_numba
     from method.model import blend_numba
     from method.shading import quadrature_numba
     from method.splat import raster_numba, trace_numba
 
     return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f
-            for mod in (raster_numba, trace_numba, blend_numba, quadrature_numba)
+            for mod in (raster_numba, trace_numba, blend_numba, quadrature_numba, ssim_numba)
             for name, f in vars(mod).items() if isinstance(f, CPUDispatcher) and not name.startswith("_")}
 
 
 def warm() -> list[str]:
     """Run each compiled kernel once (raster forward + backward with screen offsets, visibility and hit
-    tracing, the nodes' blend, the diffuse quadrature); return the names of the kernels now compiled. Raises ImportError without Numba."""
+    tracing, the nodes' blend, the diffuse quadrature, the training SSIM); return the names of the kernels now compiled. Raises ImportError without Numba."""
     import numba  # noqa: F401  (the point: nothing to warm without it)
 
     from method.splat.bench import make_scene, make_trace_queries, raster_loss
@@ -56,6 +57,10 @@ def warm() -> list[str]:
 
     nrm = torch.tensor([[0.0, 0.0, 1.0]], requires_grad=True)
     cosine_weights_compiled(nrm, texel_moments(2, 4, 2)).sum().backward()
+    from method.losses import ssim  # the training SSIM (method/ssim_numba.py)
+
+    img = torch.rand(12, 12, 3, requires_grad=True)
+    ssim(img, torch.rand(12, 12, 3)).backward()
     return [name for name, f in kernels().items() if f.signatures]
 
 
