@@ -34,6 +34,65 @@ SPLAT_BLOCK = 512  # splats per parallel task in the per-splat kernels (one set 
 MARGIN = 0.01  # pixels: the span is widened by this much on each side, then every pixel is tested exactly
 
 
+_SIGN = np.uint64(1 << 63)
+_ALL = np.uint64(0xFFFFFFFFFFFFFFFF)
+_BYTE = np.uint64(0xFF)
+
+
+@njit(cache=True, error_model="numpy")
+def depth_order(z, valid):
+    """The indices of the valid splats by ascending z, ties in index order: what
+    ``torch.argsort(z, stable=True)`` restricted to ``valid`` gives (-0.0 equal to +0.0, NaN last), in
+    O(N). A least-significant-byte radix sort on z's float64 bit patterns made unsigned-sortable (float32
+    widens exactly); the bytes every key shares are skipped (a float32 depth's low 29 bits are zero, its
+    exponent byte mostly one value). torch's sort was ~2 ms of a `small` step at 20k splats (BENCHMARKS.md,
+    issue 23, session 40)."""
+    m = 0
+    for i in range(z.shape[0]):
+        if valid[i]:
+            m += 1
+    vals = np.empty(m)
+    idx = np.empty(m, np.int64)
+    j = 0
+    for i in range(z.shape[0]):
+        if valid[i]:
+            v = np.float64(z[i])
+            vals[j] = 0.0 if v == 0.0 else v
+            idx[j] = i
+            j += 1
+    keys = vals.view(np.uint64).copy()
+    for j in range(m):
+        if vals[j] != vals[j]:
+            keys[j] = _ALL  # NaN after everything, as torch sorts it
+        elif keys[j] & _SIGN:
+            keys[j] = ~keys[j]
+        else:
+            keys[j] = keys[j] | _SIGN
+    counts = np.zeros((8, 257), np.int64)
+    for j in range(m):
+        k = keys[j]
+        for b in range(8):
+            counts[b, np.int64((k >> np.uint64(8 * b)) & _BYTE) + 1] += 1
+    keys2 = np.empty_like(keys)
+    idx2 = np.empty_like(idx)
+    for b in range(8):
+        cb = counts[b]
+        if cb.max() == m:
+            continue  # every key has the same byte here: the pass would not move anything
+        for v in range(256):
+            cb[v + 1] += cb[v]
+        shift = np.uint64(8 * b)
+        for j in range(m):
+            d = np.int64((keys[j] >> shift) & _BYTE)
+            pos = cb[d]
+            cb[d] = pos + 1
+            keys2[pos] = keys[j]
+            idx2[pos] = idx[j]
+        keys, keys2 = keys2, keys
+        idx, idx2 = idx2, idx
+    return idx
+
+
 @njit(cache=True, error_model="numpy")
 def row_lists(order, y0, y1, height):
     """Splat ids per image row, in the order given (depth rank): CSR (starts (H+1,), ids)."""
@@ -590,9 +649,9 @@ def composite_rows(rows, attrs, x0, x1, y0, y1, valid, bounded, k2, z, width: in
     """The compiled selection + compositing, rows and attrs on the CPU: per pixel (sum w f (HW, K), sum w z,
     distortion, log T final, median depth), per splat visibility (N,) and the number of composited pairs."""
     with torch.no_grad():
-        order = torch.argsort(z.detach(), stable=True)
-        order = order.index_select(0, torch.nonzero(valid.index_select(0, order)).squeeze(1))
-        starts, ids = row_lists(as_i64(order), as_i64(y0), as_i64(y1), height)
+        order = depth_order(np.ascontiguousarray(z.detach().cpu().numpy()),
+                            np.ascontiguousarray(valid.detach().cpu().numpy()))
+        starts, ids = row_lists(order, as_i64(y0), as_i64(y1), height)
     geom = (as_i64(x0), as_i64(x1), starts, ids, as_f64(k2), np.ascontiguousarray(bounded.detach().cpu().numpy()))
     args = (geom, width, height, float(cx), float(cy), float(near), float(m_scale), float(m_near), float(t_stop))
     if torch.is_grad_enabled() and (rows.requires_grad or attrs.requires_grad):
