@@ -75,6 +75,34 @@ def finite_or_raise(run_dir: Path, stage: int, iteration: int, what: str, value:
         raise TrainingDiverged(f"stage {stage} stopped: non-finite {what} at iteration {iteration}{keep}")
 
 
+def training_step(stage, run_dir: Path, it: int, total: int, gen: torch.Generator, timer: Timer, log):
+    """One iteration of ``stage``: forward, the NaN guard on the loss terms, backward, the guard on the
+    gradients, the optimiser step, the guard on the parameters, then the stage's after-step work (density
+    control). Timed into ``timer``'s laps; returns (loss, terms). The training loop and the step benchmark
+    (method/step_bench.py) both run this."""
+    k = stage.number
+    timer.start()
+    loss, terms = stage.forward(it, total, gen, timer, log)
+    for name, val in terms.items():
+        finite_or_raise(run_dir, k, it, f"loss term '{name}'", val)
+    finite_or_raise(run_dir, k, it, "loss", loss)
+    timer.lap(stage.forward_lap)
+    stage.zero_grad()
+    loss.backward()
+    timer.lap("backward")
+    guarded = stage.guarded()
+    for name, tensors in guarded:
+        grads = [t.grad.sum() for t in tensors if t.grad is not None]
+        if grads:
+            finite_or_raise(run_dir, k, it, f"gradient of {name}", torch.stack(grads).sum())
+    stage.optimiser_step(it, total)
+    for name, tensors in guarded:
+        finite_or_raise(run_dir, k, it, f"parameter {name}", torch.stack([t.detach().sum() for t in tensors]).sum())
+    timer.lap("step")
+    stage.after_step(it, gen, timer)
+    return loss, terms
+
+
 def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume: bool, progress: bool = True,
               write_outputs: bool = True) -> dict:
     """Train ``stage`` into ``run_dir`` from scratch or from its last checkpoint; return its metrics."""
@@ -126,26 +154,7 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
         with make_progress(disable=not progress) as bar:
             task = bar.add_task(what, total=total, completed=start_it, rate="")
             for it in range(start_it + 1, total + 1):
-                timer.start()
-                loss, terms = stage.forward(it, total, gen, timer, log)
-                for name, val in terms.items():
-                    finite_or_raise(run_dir, k, it, f"loss term '{name}'", val)
-                finite_or_raise(run_dir, k, it, "loss", loss)
-                timer.lap(stage.forward_lap)
-                stage.zero_grad()
-                loss.backward()
-                timer.lap("backward")
-                guarded = stage.guarded()
-                for name, tensors in guarded:
-                    grads = [t.grad.sum() for t in tensors if t.grad is not None]
-                    if grads:
-                        finite_or_raise(run_dir, k, it, f"gradient of {name}", torch.stack(grads).sum())
-                stage.optimiser_step(it, total)
-                for name, tensors in guarded:
-                    finite_or_raise(run_dir, k, it, f"parameter {name}",
-                                    torch.stack([t.detach().sum() for t in tensors]).sum())
-                timer.lap("step")
-                stage.after_step(it, gen, timer)
+                loss, terms = training_step(stage, run_dir, it, total, gen, timer, log)
                 lval = float(loss.detach())
                 ema = lval if ema is None else 0.9 * ema + 0.1 * lval
                 if it % s["log_every"] == 0 or it == total:

@@ -345,3 +345,25 @@ def test_a_run_without_the_split_neither_hashes_nor_compares_the_split_settings(
     with pytest.raises(UserError, match="stage1.lr_opacity"):
         check_settings(run, wo_p, 1, "resuming stage 1")
     assert "stage1.lr_opacity" not in SPLIT_ONLY
+
+
+def test_step_bench_replays_the_trainings_own_steps(stage1_run):
+    """method.step_bench runs the loop's step from a checkpoint with the run's recorded settings, data and
+    generator state: its last step's loss is the training's logged loss at that iteration, bit for bit."""
+    from method.step_bench import bench_steps
+
+    logged = {r["iteration"]: r["loss"] for r in map(json.loads, (stage1_run / "log_stage1.jsonl").read_text().splitlines())
+              if "loss" in r}
+    res = bench_steps(stage1_run, iteration=6, steps=6, warm=0)
+    assert res["iteration"] == 6 and set(res["parts_ms"]) >= {"deform", "rasterize", "loss", "backward", "step"}
+    assert res["last_loss"] == logged[12]
+    assert not (stage1_run / "failure.json").exists()
+
+
+def test_step_bench_names_what_is_missing(stage1_run, capsys):
+    from method.step_bench import main
+
+    assert main([str(stage1_run), "--iteration", "5"]) == 2
+    assert "no stage-1 checkpoint at iteration 5 (there are: 6, 12)" in capsys.readouterr().err
+    assert main([str(stage1_run), "--iteration", "6", "--steps", "20"]) == 2
+    assert "pass the run's 12" in capsys.readouterr().err
