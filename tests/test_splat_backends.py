@@ -278,13 +278,19 @@ def test_every_compiled_kernel_can_be_cached():
 
     sn.ssim_compiled(torch.rand(12, 12, 3, requires_grad=True), torch.rand(12, 12, 3),
                      _window(torch.float64, "cpu")).backward()
-    kernels = {f"{m.__name__}.{k}": v for m in (rn, tn, bn, qn, sn) for k, v in vars(m).items()
+    import method.splat.depth_normals_numba as dn  # the depth normals
+
+    cam64 = Camera.look_at(torch.tensor([0.0, -2.0, 2.0]), torch.zeros(3), 6, 5).to("cpu", F64)
+    from method.splat.rasterize import normal_from_depth
+
+    normal_from_depth(torch.rand(5, 6, dtype=F64, requires_grad=True) + 1, cam64, backend="numba").sum().backward()
+    kernels = {f"{m.__name__}.{k}": v for m in (rn, tn, bn, qn, sn, dn) for k, v in vars(m).items()
                if isinstance(v, CPUDispatcher)}
     compiled = {name: k for name, k in kernels.items() if k.overloads}
     assert {"method.splat.raster_numba.forward", "method.splat.raster_numba.backward"} <= set(compiled)
     assert any(name.startswith("method.splat.trace_numba.") for name in compiled)
     assert {"method.model.blend_numba.blend_backward", "method.shading.quadrature_numba.cosine_backward",
-            "method.ssim_numba.ssim_backward"} <= set(compiled)
+            "method.ssim_numba.ssim_backward", "method.splat.depth_normals_numba.normals_backward"} <= set(compiled)
     uncachable = [name for name, k in compiled.items()
                   if k._cache is not None and any(c.library.has_dynamic_globals for c in k.overloads.values())]
     assert uncachable == []

@@ -392,7 +392,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     return RasterOutput(
         features=feat.reshape(H, W, C), alpha=alpha_img.reshape(H, W), normal=acc[:, C:C + 3].reshape(H, W, 3),
         depth_expected=out_depth_exp, depth_median=out_med, distortion=dist.reshape(H, W),
-        normal_from_depth=normal_from_depth(surf, cam), visible=visible, radii=radii, num_pairs=num_pairs)
+        normal_from_depth=normal_from_depth(surf, cam, backend), visible=visible, radii=radii, num_pairs=num_pairs)
 
 
 def _composite_torch(proj, opacities, features, cam: Camera, near, screen_offsets, m_scale, m_near):
@@ -425,9 +425,21 @@ def _composite_torch(proj, opacities, features, cam: Camera, near, screen_offset
     return acc, dsum, dist, log_t, med, visible, radii, int(sid.numel())
 
 
-def normal_from_depth(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
+def normal_from_depth(depth: torch.Tensor, camera: Camera, backend: str | None = None) -> torch.Tensor:
     """World-space unit normals (facing the camera) from a camera-z depth map by central differences;
-    the one-pixel border is zero."""
+    the one-pixel border is zero. By the compiled kernel (depth_normals_numba.py) where ``backend``
+    resolves to Numba (CPU tensors), by the torch reference below otherwise."""
+    if resolve(backend, depth.device) == "numba":
+        from .depth_normals_numba import normal_from_depth_compiled
+
+        cam = camera if (camera.device == depth.device and camera.dtype == depth.dtype) else camera.to(
+            depth.device, depth.dtype)
+        return normal_from_depth_compiled(depth, cam)
+    return normal_from_depth_torch(depth, camera)
+
+
+def normal_from_depth_torch(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """``normal_from_depth`` in torch: the reference, and the CUDA path."""
     H, W = depth.shape
     dev, dt = depth.device, depth.dtype
     ys = torch.arange(H, device=dev, dtype=dt) + 0.5

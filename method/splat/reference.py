@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from .camera import Camera
-from .rasterize import ALPHA_MAX, ALPHA_MIN, T_STOP, normal_from_depth
+from .rasterize import ALPHA_MAX, ALPHA_MIN, T_STOP, normal_from_depth_torch
 from .splats import splat_frames
 
 
@@ -90,7 +90,7 @@ def rasterize_dense(means, quats, scales, opacities, features, camera: Camera, b
     surf = d_exp * (1 - depth_ratio) + med * depth_ratio
     return dict(features=feat.reshape(H, W, C), alpha=alpha_img.reshape(H, W), normal=nrm_img.reshape(H, W, 3),
                 depth_expected=d_exp, depth_median=med, distortion=dist.reshape(H, W),
-                normal_from_depth=normal_from_depth(surf, cam))
+                normal_from_depth=normal_from_depth_torch(surf, cam))
 
 
 def trace_dense(means, quats, scales, opacities, features, origins, dirs, t_min=0.0, *, alpha_min=0.01,

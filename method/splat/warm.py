@@ -21,10 +21,10 @@ def kernels() -> dict:
     from method import ssim_numba
     from method.model import blend_numba
     from method.shading import quadrature_numba
-    from method.splat import raster_numba, trace_numba
+    from method.splat import depth_normals_numba, raster_numba, trace_numba
 
     return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f
-            for mod in (raster_numba, trace_numba, blend_numba, quadrature_numba, ssim_numba)
+            for mod in (raster_numba, depth_normals_numba, trace_numba, blend_numba, quadrature_numba, ssim_numba)
             for name, f in vars(mod).items() if isinstance(f, CPUDispatcher) and not name.startswith("_")}
 
 
@@ -40,7 +40,7 @@ def warm() -> list[str]:
     *params, cam = make_scene(64, 16)  # the bench's random splats: float32, as training passes them
     params = [p.requires_grad_(True) for p in params]
     off = torch.zeros(params[0].shape[0], 2, requires_grad=True)
-    raster_loss(rasterize(*params, cam, None, screen_offsets=off, backend="numba")).backward()
+    raster_loss(rasterize(*params, cam, None, screen_offsets=off, backend="numba")).backward()  # depth normals too
     o, d = make_trace_queries(*[p.detach() for p in params[:3]], 8, 4)
     with torch.no_grad():
         accel = TraceAccel.build(*[p.detach() for p in params[:4]])
