@@ -2,7 +2,7 @@
 
 torch's default Adam on the CPU updates each tensor with about eight separate ops; the fused kernel does
 one pass per tensor. Over stage 1's six Gaussian tensors and the deformation network that is ~5 ms of a
-~70 ms step on one thread against ~1-2 ms (BENCHMARKS.md, "Stage 1: fused Adam"). The update is the same
+~70 ms step on one thread against ~1-2 ms (BENCHMARKS.md, "Stage 1 at 1.16x more"). The update is the same
 formula; only the order of its float operations differs (a run is another draw of its seed, as on
 another CPU), and the optimiser's state dict is the same, so checkpoints resume either way."""
 from __future__ import annotations
