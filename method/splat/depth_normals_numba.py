@@ -52,6 +52,12 @@ def _differences(z, rot, centre, f, cx, cy, i, j):
     return u0 - w0, u1 - w1, u2 - w2, r0 - l0, r1 - l1, r2 - l2
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _cross(a0, a1, a2, b0, b1, b2):
+    """a x b."""
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def normals_forward(z, rot, centre, f, cx, cy):
     """z (H, W) camera-z depth -> unit normals (H, W, 3), zero on the border."""
@@ -62,9 +68,7 @@ def normals_forward(z, rot, centre, f, cx, cy):
     for i in prange(1, height - 1):
         for j in range(1, width - 1):
             a0, a1, a2, b0, b1, b2 = _differences(z, rot, centre, f, cx, cy, i, j)
-            n0 = a1 * b2 - a2 * b1
-            n1 = a2 * b0 - a0 * b2
-            n2 = a0 * b1 - a1 * b0
+            n0, n1, n2 = _cross(a0, a1, a2, b0, b1, b2)
             norm = max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), TINY)
             out[i, j, 0] = n0 / norm
             out[i, j, 1] = n1 / norm
@@ -84,9 +88,7 @@ def normals_backward(z, rot, centre, f, cx, cy, g):
     for i in prange(1, height - 1):
         for j in range(1, width - 1):
             a0, a1, a2, b0, b1, b2 = _differences(z, rot, centre, f, cx, cy, i, j)
-            n0 = a1 * b2 - a2 * b1
-            n1 = a2 * b0 - a0 * b2
-            n2 = a0 * b1 - a1 * b0
+            n0, n1, n2 = _cross(a0, a1, a2, b0, b1, b2)
             length = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
             q0, q1, q2 = g[i, j, 0], g[i, j, 1], g[i, j, 2]
             if length > TINY:
@@ -95,28 +97,25 @@ def normals_backward(z, rot, centre, f, cx, cy, g):
                 m0, m1, m2 = (q0 - o0 * dot) / length, (q1 - o1 * dot) / length, (q2 - o2 * dot) / length
             else:
                 m0, m1, m2 = q0 / TINY, q1 / TINY, q2 / TINY
-            g_a[i, j, 0] = b1 * m2 - b2 * m1  # b x g_n
-            g_a[i, j, 1] = b2 * m0 - b0 * m2
-            g_a[i, j, 2] = b0 * m1 - b1 * m0
-            g_b[i, j, 0] = m1 * a2 - m2 * a1  # g_n x a
-            g_b[i, j, 1] = m2 * a0 - m0 * a2
-            g_b[i, j, 2] = m0 * a1 - m1 * a0
+            g_a[i, j, 0], g_a[i, j, 1], g_a[i, j, 2] = _cross(b0, b1, b2, m0, m1, m2)  # b x g_n
+            g_b[i, j, 0], g_b[i, j, 1], g_b[i, j, 2] = _cross(m0, m1, m2, a0, a1, a2)  # g_n x a
     for i in prange(height):
         for j in range(width):
             p0 = p1 = p2 = 0.0
-            if 1 <= i - 1 and j >= 1 and j <= width - 2:  # a at (i-1, j) has +p[i, j]
+            # g_a and g_b are zero off the interior, so only the image's edges need a test
+            if i >= 1:  # a at (i-1, j) has +p[i, j]
                 p0 += g_a[i - 1, j, 0]
                 p1 += g_a[i - 1, j, 1]
                 p2 += g_a[i - 1, j, 2]
-            if i + 1 <= height - 2 and j >= 1 and j <= width - 2:  # a at (i+1, j) has -p[i, j]
+            if i + 1 < height:  # a at (i+1, j) has -p[i, j]
                 p0 -= g_a[i + 1, j, 0]
                 p1 -= g_a[i + 1, j, 1]
                 p2 -= g_a[i + 1, j, 2]
-            if 1 <= j - 1 and i >= 1 and i <= height - 2:  # b at (i, j-1) has +p[i, j]
+            if j >= 1:  # b at (i, j-1) has +p[i, j]
                 p0 += g_b[i, j - 1, 0]
                 p1 += g_b[i, j - 1, 1]
                 p2 += g_b[i, j - 1, 2]
-            if j + 1 <= width - 2 and i >= 1 and i <= height - 2:  # b at (i, j+1) has -p[i, j]
+            if j + 1 < width:  # b at (i, j+1) has -p[i, j]
                 p0 -= g_b[i, j + 1, 0]
                 p1 -= g_b[i, j + 1, 1]
                 p2 -= g_b[i, j + 1, 2]
