@@ -64,15 +64,24 @@ class Timer:
         self._t = t
 
 
-def finite_or_raise(run_dir: Path, stage: int, iteration: int, what: str, value: torch.Tensor) -> None:
-    """The NaN guard: a non-finite value writes failure.json and stops the run naming the last good checkpoint."""
-    if not bool(torch.isfinite(value).all()):
-        record = {"status": "failed", "stage": stage, "iteration": iteration, "term": what,
-                  "cause": f"non-finite {what} at iteration {iteration}", "time": time.time()}
-        atomic_write_json(Path(run_dir) / "failure.json", record)
-        last = checkpoint_paths(run_dir, stage)
-        keep = f"; last good checkpoint: {last[-1][1]}" if last else "; no checkpoint was written yet"
-        raise TrainingDiverged(f"stage {stage} stopped: non-finite {what} at iteration {iteration}{keep}")
+def finite_or_raise(run_dir: Path, stage: int, iteration: int, checks: list[tuple[str, torch.Tensor]]) -> None:
+    """The NaN guard: the first non-finite value of ``checks`` (what, tensor) writes failure.json and stops
+    the run naming the last good checkpoint. One test over all of them (a stacked sum), the one-by-one
+    search only when it fails: the guard ran ~30 separate tests a step (~1 ms of a `demo` step)."""
+    if not checks:
+        return
+    total = torch.stack([v.detach().sum(dtype=torch.float64) for _, v in checks]).sum()  # float32 cannot overflow it
+    if bool(torch.isfinite(total)):
+        return
+    what = next((w for w, v in checks if not bool(torch.isfinite(v).all())), None)
+    if what is None:
+        return
+    record = {"status": "failed", "stage": stage, "iteration": iteration, "term": what,
+              "cause": f"non-finite {what} at iteration {iteration}", "time": time.time()}
+    atomic_write_json(Path(run_dir) / "failure.json", record)
+    last = checkpoint_paths(run_dir, stage)
+    keep = f"; last good checkpoint: {last[-1][1]}" if last else "; no checkpoint was written yet"
+    raise TrainingDiverged(f"stage {stage} stopped: non-finite {what} at iteration {iteration}{keep}")
 
 
 def training_step(stage, run_dir: Path, it: int, total: int, gen: torch.Generator, timer: Timer, log):
@@ -83,21 +92,16 @@ def training_step(stage, run_dir: Path, it: int, total: int, gen: torch.Generato
     k = stage.number
     timer.start()
     loss, terms = stage.forward(it, total, gen, timer, log)
-    for name, val in terms.items():
-        finite_or_raise(run_dir, k, it, f"loss term '{name}'", val)
-    finite_or_raise(run_dir, k, it, "loss", loss)
+    finite_or_raise(run_dir, k, it, [(f"loss term '{name}'", val) for name, val in terms.items()] + [("loss", loss)])
     timer.lap(stage.forward_lap)
     stage.zero_grad()
     loss.backward()
     timer.lap("backward")
     guarded = stage.guarded()
-    for name, tensors in guarded:
-        grads = [t.grad.sum() for t in tensors if t.grad is not None]
-        if grads:
-            finite_or_raise(run_dir, k, it, f"gradient of {name}", torch.stack(grads).sum())
+    finite_or_raise(run_dir, k, it, [(f"gradient of {name}", t.grad) for name, tensors in guarded
+                                     for t in tensors if t.grad is not None])
     stage.optimiser_step(it, total)
-    for name, tensors in guarded:
-        finite_or_raise(run_dir, k, it, f"parameter {name}", torch.stack([t.detach().sum() for t in tensors]).sum())
+    finite_or_raise(run_dir, k, it, [(f"parameter {name}", t) for name, tensors in guarded for t in tensors])
     timer.lap("step")
     stage.after_step(it, gen, timer)
     return loss, terms

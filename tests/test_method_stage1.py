@@ -183,6 +183,23 @@ def test_bf16_trunk_follows_the_fp32_network_and_keeps_fp32_outputs():
         DeformNet(precision="fp16")
 
 
+def test_the_blocked_encoding_is_the_encoding_reordered_with_its_gradient():
+    """blocked_encoding (two transcendental calls, a backward from the saved sines and cosines) gives
+    positional_encoding's columns in blocked_order, and the same gradient for any upstream gradient."""
+    from method.model.deform import blocked_encoding, blocked_order, positional_encoding
+
+    torch.manual_seed(3)
+    for n, d, freqs in [(50, 3, 6), (7, 1, 3), (4, 3, 1), (5, 2, 0)]:
+        x = (torch.randn(n, d, dtype=torch.float64) * 2).requires_grad_()
+        ours, ref = blocked_encoding(x, freqs), positional_encoding(x, freqs)[:, blocked_order(d, freqs)]
+        assert sorted(blocked_order(d, freqs)) == list(range(d * (1 + 2 * freqs)))
+        torch.testing.assert_close(ours, ref, rtol=0, atol=0)
+        g = torch.randn_like(ref)
+        g_ours, = torch.autograd.grad(ours, x, g, allow_unused=True)
+        g_ref, = torch.autograd.grad(ref, x, g)
+        torch.testing.assert_close(g_ours, g_ref, rtol=1e-12, atol=1e-12)
+
+
 def test_the_trunk_equals_the_mlp_on_the_concatenated_position_and_time_features():
     """The trunk takes the time features' share of the first and the skip layer once per call, and the heads
     are one product: the same network as the textbook one, every layer on [enc(mu), timenet(enc(t))] (and

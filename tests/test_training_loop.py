@@ -367,3 +367,22 @@ def test_step_bench_names_what_is_missing(stage1_run, capsys):
     assert "no stage-1 checkpoint at iteration 5 (there are: 6, 12)" in capsys.readouterr().err
     assert main([str(stage1_run), "--iteration", "6", "--steps", "20"]) == 2
     assert "pass the run's 12" in capsys.readouterr().err
+
+
+def test_nan_guard_names_the_first_non_finite_value_and_passes_large_finite_ones(tmp_path):
+    """One stacked test for all values, the search only on failure: the first non-finite one is named (in
+    the order given, as the one-by-one guard did), values whose float32 sums overflow but that are all
+    finite pass, and +inf in one value with -inf in another is caught (their sums cancel to NaN)."""
+    from method.train import TrainingDiverged, finite_or_raise
+
+    big = torch.full((4,), 3e38)  # finite; its float32 sum is inf
+    finite_or_raise(tmp_path, 1, 7, [("a", torch.tensor(1.0)), ("big", big), ("c", torch.zeros(3))])
+    finite_or_raise(tmp_path, 1, 7, [])
+    assert not (tmp_path / "failure.json").exists()
+    cases = [([("a", torch.tensor(1.0)), ("b", torch.tensor([1.0, float("nan")])), ("c", torch.tensor(float("inf")))], "b"),
+             ([("a", torch.tensor([float("inf")])), ("b", torch.tensor([-float("inf")]))], "a"),
+             ([("a", torch.ones(2)), ("b", big), ("c", torch.tensor([-float("inf"), 0.0]))], "c")]
+    for checks, name in cases:
+        with pytest.raises(TrainingDiverged, match=f"non-finite {name} at iteration 7"):
+            finite_or_raise(tmp_path, 1, 7, checks)
+        assert json.loads((tmp_path / "failure.json").read_text())["term"] == name

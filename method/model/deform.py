@@ -19,12 +19,54 @@ PRECISIONS = ("fp32", "bf16")
 
 
 def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
-    """[x, sin(2^k x), cos(2^k x)] for k < freqs (NeRF / Deformable 3DGS; no pi factor)."""
+    """[x, sin(2^k x), cos(2^k x)] for k < freqs (NeRF / Deformable 3DGS; no pi factor): the column order
+    the network's weights are stored in."""
     parts = [x]
     for k in range(freqs):
         s = x * (2.0 ** k)
         parts += [torch.sin(s), torch.cos(s)]
     return torch.cat(parts, -1)
+
+
+def blocked_order(dims: int, freqs: int) -> list[int]:
+    """Column j of ``blocked_encoding``'s output is column ``blocked_order(...)[j]`` of
+    ``positional_encoding``'s."""
+    width = 2 * dims
+    sines = [dims + width * k + d for k in range(freqs) for d in range(dims)]
+    return list(range(dims)) + sines + [c + dims for c in sines]
+
+
+class _BlockedEncoding(torch.autograd.Function):
+    """[x, sin(S), cos(S)] with S = [2^k x]_k (N, freqs * dims): the encoding's values in three blocks, from
+    two whole-tensor transcendental calls; the backward reuses them (d sin(a x) = a cos(a x) dx, d cos(a x) =
+    -a sin(a x) dx) and folds the 2^k and the sum over k into one small product. The op-by-op encoding is
+    ~50 small ops forward and backward (one thin concatenation of 13 pieces among them): ~1.8 ms a `small`
+    step at 4,096 points on one thread (BENCHMARKS.md, session 41)."""
+
+    @staticmethod
+    def forward(ctx, x, freqs):
+        n, d = x.shape
+        scales = 2.0 ** torch.arange(freqs, dtype=x.dtype, device=x.device)  # exact powers of two
+        s = (x.unsqueeze(1) * scales.unsqueeze(-1)).reshape(n, freqs * d)
+        sn, cs = torch.sin(s), torch.cos(s)
+        ctx.save_for_backward(sn, cs)
+        ctx.fold = torch.kron(scales.unsqueeze(-1), torch.eye(d, dtype=x.dtype, device=x.device))  # (freqs d, d)
+        return torch.cat([x, sn, cs], -1)
+
+    @staticmethod
+    def backward(ctx, g):
+        sn, cs = ctx.saved_tensors
+        d = ctx.fold.shape[1]
+        m = sn.shape[1]
+        g_s = g[:, d:d + m] * cs - g[:, d + m:] * sn
+        return g[:, :d] + g_s @ ctx.fold, None
+
+
+def blocked_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
+    """``positional_encoding(x, freqs)``'s values (x: (N, dims)) in the column order ``blocked_order``."""
+    if freqs <= 0:
+        return x
+    return _BlockedEncoding.apply(x, freqs)
 
 
 class DeformNet(nn.Module):
@@ -44,6 +86,11 @@ class DeformNet(nn.Module):
             d_in = in_dim if i == 0 else width + (in_dim if skip and i == skip else 0)
             layers.append(nn.Linear(d_in, width))
         self.layers = nn.ModuleList(layers)
+        # the first and the skip layer read the position encoding in blocked_encoding's order: their
+        # weight's encoding columns are gathered to match (the stored layout stays positional_encoding's)
+        order = torch.tensor(blocked_order(3, pos_freqs))
+        self.register_buffer("_enc_cols", order, persistent=False)
+        self.register_buffer("_skip_cols", torch.cat([torch.arange(width), width + order]), persistent=False)
         self.d_mu = nn.Linear(width, 3)
         self.d_rot = nn.Linear(width, 4)
         self.d_col = nn.Linear(width, 3)
@@ -80,7 +127,7 @@ class DeformNet(nn.Module):
         and backward at `small`, BENCHMARKS.md)."""
         tt = torch.full((1, 1), float(t), dtype=x_norm.dtype, device=x_norm.device)
         tfeat = self.time_net(positional_encoding(tt, self.time_freqs))  # (1, time_net_out)
-        enc = positional_encoding(x_norm, self.pos_freqs)
+        enc = blocked_encoding(x_norm, self.pos_freqs)
         h = enc
         for i, layer in enumerate(self.layers):
             if i == 0 or (self.skip and i == self.skip):
@@ -88,7 +135,7 @@ class DeformNet(nn.Module):
                     h = torch.cat([h, enc], -1)
                 w = h.shape[-1]  # the input columns every Gaussian has; the rest of the weight is the time's
                 bias = F.linear(tfeat, layer.weight[:, w:], layer.bias)[0]
-                h = F.linear(h, layer.weight[:, :w], bias)
+                h = F.linear(h, layer.weight[:, self._skip_cols if i else self._enc_cols], bias)
             else:
                 h = layer(h)
             h = torch.relu_(h)  # in place: the products' backward needs their inputs, not their outputs
