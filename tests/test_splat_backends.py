@@ -68,6 +68,8 @@ def test_raster_camera_inside_the_cloud_and_behind_the_near_plane():
         res = _raster_both(params, cam, near=near)
         (a, ga), (b, gb) = res["numba"], res["torch"]
         assert a.num_pairs == b.num_pairs
+        # the kernels see the valid splats only, renumbered by depth: visibility comes back in place
+        assert torch.equal(a.visible, b.visible) and 0 < int(b.visible.sum()) < len(b.visible)
         for k in KEYS:
             _close(getattr(a, k), getattr(b, k), 1e-10, k)
         for x, y in zip(ga, gb):
@@ -80,8 +82,10 @@ def test_raster_stop_rule_is_shared(monkeypatch):
     import method.splat.rasterize as rz
 
     params, cam = random_scene(seed=3, opacity=(0.9, 1.0), n=64)
-    n0 = rasterize(*params, cam, backend="numba").num_pairs
-    assert n0 == rasterize(*params, cam, backend="torch").num_pairs
+    a, b = rasterize(*params, cam, backend="numba"), rasterize(*params, cam, backend="torch")
+    n0 = a.num_pairs
+    assert n0 == b.num_pairs
+    assert torch.equal(a.visible, b.visible)
     monkeypatch.setattr(rz, "T_STOP", 1e-300)
     n1 = rasterize(*params, cam, backend="numba").num_pairs
     assert n1 == rasterize(*params, cam, backend="torch").num_pairs > n0 + 20
