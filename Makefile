@@ -55,7 +55,7 @@ eval: setup
 	$(PY) -m benchmark eval --profile $(PROFILE) --data $(DATA) --runs $(RUNS) --results $(RESULTS) --executor $(EXECUTOR) --jobs $(JOBS) $(if $(METHODS),--methods $(METHODS),) $(if $(filter-out 0,$(KEEP_GOING)),--keep-going,)
 
 demo: setup
-	$(PY) -m method demo --data $(DATA) --runs $(RUNS) --out $(RESULTS) --jobs $(JOBS)
+	$(PY) -m method demo --data $(DATA) --runs $(RUNS) --out $(RESULTS) $(if $(filter command line environment,$(origin JOBS)),--jobs $(JOBS),)
 
 test: setup
 	$(PY) -m pytest $(PYTEST_ARGS)

@@ -17,7 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", default="data")
     p.add_argument("--runs", default="runs")
     p.add_argument("--out", default="results", help="results root (default results; writes OUT/demo/)")
-    p.add_argument("--jobs", type=int, default=1, help="render worker processes")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="render worker processes (default: one per usable core; each Blender then gets one "
+                        "thread, which renders the demo's 64 px frames faster than one Blender on every core)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -26,9 +28,14 @@ def run(args: argparse.Namespace) -> int:
     from generator import pipeline
     from lumibench.errors import UserError
 
+    from lumibench.machine import usable_cores
+
     grid = load_benchmark_config(DEMO_GRID)
     scene, conf = grid.scenes[0], grid.configurations[0]
-    scene_dir = pipeline.render_scene(scene, grid.profile, Path(args.data), jobs=args.jobs, progress=True)
+    jobs = usable_cores() if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise UserError(f"--jobs must be at least 1, got {jobs}")
+    scene_dir = pipeline.render_scene(scene, grid.profile, Path(args.data), jobs=jobs, progress=True)
     rc = benchmark_main(["eval", "--config", str(DEMO_GRID), "--data", args.data, "--runs", args.runs,
                          "--results", args.out])
     out = Path(args.out) / grid.profile
