@@ -29,7 +29,6 @@ def run(args: argparse.Namespace) -> int:
     from benchmark.config import load_benchmark_config
     from generator import pipeline
     from lumibench.errors import UserError
-
     from lumibench.machine import usable_cores
 
     grid = load_benchmark_config(DEMO_GRID)
