@@ -372,7 +372,8 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
     elif accel.num_splats != means.shape[0] or abs(accel.alpha_min - alpha_min) > 0:
         raise ValueError("accel was built for a different splat set or alpha_min; rebuild it")
     compiled = resolve(backend, dev) == "numba"
-    needs_grad = torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales, opacities))
+    geometry_grad = torch.is_grad_enabled() and any(v.requires_grad for v in (means, quats, scales))
+    needs_grad = geometry_grad or (torch.is_grad_enabled() and opacities.requires_grad)
     # the torch traversal's alphas use the opacities the grid was built with: reused only when those are the
     # opacities given (a grid kept while opacities are fine-tuned, as stage 2 does, selects the hits, and
     # the alphas come from the current opacities, as with gradients or the compiled traversal)
@@ -390,7 +391,7 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
     if compiled:
         from .trace_numba import march_hits  # numba is optional: imported only when this backend runs
 
-        def march(o, d, tm):  # (ray, splat): the alphas are recomputed below
+        def march(o, d, tm):  # (ray, splat, Gaussian factor): the alphas are formed below
             return march_hits(accel, o, d, tm, T_min, max_alpha)
     else:
         def march(o, d, tm):  # (ray, splat, alpha)
@@ -400,11 +401,18 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
                  for i in range(0, R, ray_chunk)]
         ray = torch.cat([p[0] + i * ray_chunk for i, p in enumerate(parts)]) if parts else tmin.new_zeros(0).long()
         splat = torch.cat([p[1] for p in parts]) if parts else ray
-        alpha = None if compiled else (torch.cat([p[2] for p in parts]) if parts else tmin[:0])
-    if compiled or stale or needs_grad:
+        third = torch.cat([p[2] for p in parts]) if parts else tmin[:0]
+        alpha = None if compiled else third  # the torch traversal's alphas (the grid's opacities)
+    if compiled and not geometry_grad:
+        # the geometry is a constant here (stage 2 freezes it; relighting and predictions take no gradient):
+        # each hit's Gaussian factor comes from the traversal (float64) and only the opacities are gathered
+        # and differentiated, where the recomputation below gathers 13 splat rows and 6 ray rows per hit and
+        # differentiates it all (stage 2: BENCHMARKS.md, issue 23, session 43)
+        alpha = torch.clamp_max(opacities.index_select(0, splat) * third.to(dt), max_alpha)
+    elif compiled or stale or needs_grad:
         # differentiable recomputation on the composited hits only (rays are treated as constants); the torch
         # traversal computed the same alphas with the same operations, so without gradients they are reused
-        # (the compiled one works in float64 and returns no alphas: they are computed here)
+        # (the compiled one returns no alphas: with a gradient to the geometry they are computed here)
         q = gather_cols(torch.cat([_splat_local(means, quats, scales).reshape(-1, 12), opacities[:, None]], 1).T,
                          splat)
         oT, dT = origins.detach().T.contiguous(), dirs.detach().T.contiguous()

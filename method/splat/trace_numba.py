@@ -6,8 +6,9 @@ the cell's t-interval and whose alpha reaches alpha_min, sorted by t (ties in sp
 of a cell's entries); a hit is kept while the transmittance before it is >= T_min, and the ray stops at
 the first hit that fails. Rays are independent, so the kernel is parallel over blocks of rays; each ray
 writes at most ``cap`` hits into its own slots, and the rare ray with more is traced again with room
-for the most hits the stop rule allows. Only the traversal is compiled: the differentiable
-recomputation of the kept hits and their compositing stay in trace() (a few vector ops on the hits).
+for the most hits the stop rule allows. Only the traversal is compiled: the compositing of the kept
+hits stays in trace() (a few vector ops on the hits), which forms each alpha from the opacities it is
+given and the hit's Gaussian factor, returned here, or recomputes it where the geometry takes a gradient.
 Where no gradient and no feature is asked for (visibility when relighting, writing predictions, the
 diagnostic), the kernel's own transmittance is the answer and no hit list is kept (march_transmittance).
 """
@@ -28,10 +29,11 @@ CAP = 32  # hit slots per ray in the first pass
 @njit(cache=True, parallel=True, error_model="numpy")
 def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alpha_min, T_min, max_alpha, cap,
           max_cell, store=True):
-    """Per ray up to ``cap`` kept hits (splat ids) and their count; a count of cap + 1 means the ray has
-    more (trace it again with a larger cap). The alphas are not returned: trace() recomputes them.
-    Also each ray's transmittance after its kept hits (float64). ``store`` False: no hits are written and
-    ``cap`` does not apply (the transmittance alone, with the same decisions)."""
+    """Per ray up to ``cap`` kept hits (splat ids) with each hit's Gaussian factor exp(-rho / 2) (float64,
+    the alpha without the opacity), and their count; a count of cap + 1 means the ray has more (trace it
+    again with a larger cap). The alphas are not returned: trace() forms them from the opacities it is
+    given. Also each ray's transmittance after its kept hits (float64). ``store`` False: no hits are
+    written and ``cap`` does not apply (the transmittance alone, with the same decisions)."""
     R = o.shape[0]
     W = blk_plane.shape[1] // 4
     o_max = 1.0
@@ -39,6 +41,7 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
         o_max = max(o_max, rows[s, 12])
     rho_max = 2.0 * math.log(o_max / alpha_min) + 1e-6  # o exp(-rho / 2) < alpha_min beyond it, any splat
     out_s = np.empty((R, cap if store else 0), np.int64)  # only the first count[i] slots of a row are written
+    out_g = np.empty((R, cap if store else 0))
     count = np.zeros(R, np.int64)
     trans_out = np.ones(R)
     n_blocks = (R + RAY_BLOCK - 1) // RAY_BLOCK
@@ -46,6 +49,7 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
         ht = np.empty(max_cell)
         hs = np.empty(max_cell, np.int64)
         ha = np.empty(max_cell)
+        hg = np.empty(max_cell)
         ci = np.empty(3, np.int64)
         step = np.empty(3, np.int64)
         t_max = np.empty(3)
@@ -112,7 +116,8 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                         rho = pu * pu + pv * pv
                         if rho > rho_max:  # alpha < alpha_min for any opacity: no exp (its underflow is slow)
                             continue
-                        a = min(rows[s, 12] * math.exp(-0.5 * rho), max_alpha)
+                        gauss = math.exp(-0.5 * rho)
+                        a = min(rows[s, 12] * gauss, max_alpha)
                         if a < alpha_min:
                             continue
                         k = m  # insertion by t; equal t keeps entry (splat id) order
@@ -120,10 +125,12 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                             ht[k] = ht[k - 1]
                             hs[k] = hs[k - 1]
                             ha[k] = ha[k - 1]
+                            hg[k] = hg[k - 1]
                             k -= 1
                         ht[k] = t
                         hs[k] = s
                         ha[k] = a
+                        hg[k] = gauss
                         m += 1
                 for k in range(m):
                     if trans < T_min:
@@ -135,6 +142,7 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                             stopped = True
                             break
                         out_s[i, n] = hs[k]
+                        out_g[i, n] = hg[k]
                     n += 1
                     trans *= 1.0 - ha[k]
                 if trans < T_min:
@@ -146,13 +154,13 @@ def march(o, d, tmin, lo, cell, res, blk_start, blk_plane, slot_splat, rows, alp
                     stopped = True
             count[i] = n
             trans_out[i] = trans
-    return out_s, count, trans_out
+    return out_s, out_g, count, trans_out
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def compact(out_s, count, over_row, s2, c2):
-    """Flat (ray, splat) from the per-ray slots; rays that overflowed (over_row[i] >= 0) take their hits
-    from the second pass (s2, c2)."""
+def compact(out_s, out_g, count, over_row, s2, g2, c2):
+    """Flat (ray, splat, Gaussian factor) from the per-ray slots; rays that overflowed (over_row[i] >= 0)
+    take their hits from the second pass (s2, g2, c2)."""
     R = count.shape[0]
     n = np.empty(R, np.int64)
     for i in range(R):
@@ -163,12 +171,14 @@ def compact(out_s, count, over_row, s2, c2):
         start[i + 1] = start[i] + n[i]
     ray = np.empty(start[R], np.int64)
     spl = np.empty(start[R], np.int64)
+    gau = np.empty(start[R])
     for i in prange(R):
         k = over_row[i]
         for j in range(n[i]):
             ray[start[i] + j] = i
             spl[start[i] + j] = s2[k, j] if k >= 0 else out_s[i, j]
-    return ray, spl
+            gau[start[i] + j] = g2[k, j] if k >= 0 else out_g[i, j]
+    return ray, spl, gau
 
 
 def _grid(accel):
@@ -185,22 +195,23 @@ def _grid(accel):
 
 
 def march_hits(accel, origins, dirs, tmin, T_min: float, max_alpha: float):
-    """(ray, splat) of the composited hits, rays in order and each ray's hits front to back."""
+    """(ray, splat, Gaussian factor (float64)) of the composited hits, rays in order and each ray's hits
+    front to back."""
     match_torch_threads()
     o, d, tm = as_f64(origins), as_f64(dirs), as_f64(tmin)
     grid, max_cell = _grid(accel)
     args = (float(accel.alpha_min), float(T_min), float(max_alpha))
-    out_s, count, _ = march(o, d, tm, *grid, *args, CAP, max_cell)
+    out_s, out_g, count, _ = march(o, d, tm, *grid, *args, CAP, max_cell)
     over = np.nonzero(count > CAP)[0]
     over_row = np.full(o.shape[0], -1, np.int64)
     if over.size:  # the stop rule bounds the hits: T_min > (1 - alpha_min)^n
         most = int(math.ceil(math.log(T_min) / math.log1p(-accel.alpha_min))) + 1
-        s2, c2, _ = march(o[over], d[over], tm[over], *grid, *args, most, max_cell)
+        s2, g2, c2, _ = march(o[over], d[over], tm[over], *grid, *args, most, max_cell)
         over_row[over] = np.arange(over.size)
     else:
-        s2, c2 = np.zeros((1, 1), np.int64), np.zeros(1, np.int64)
-    ray, spl = compact(out_s, count, over_row, s2, c2)
-    return torch.from_numpy(ray), torch.from_numpy(spl)
+        s2, g2, c2 = np.zeros((1, 1), np.int64), np.zeros((1, 1)), np.zeros(1, np.int64)
+    ray, spl, gau = compact(out_s, out_g, count, over_row, s2, g2, c2)
+    return torch.from_numpy(ray), torch.from_numpy(spl), torch.from_numpy(gau)
 
 
 def march_transmittance(accel, origins, dirs, tmin, T_min: float, max_alpha: float) -> torch.Tensor:
@@ -210,6 +221,6 @@ def march_transmittance(accel, origins, dirs, tmin, T_min: float, max_alpha: flo
     match_torch_threads()
     o, d, tm = as_f64(origins), as_f64(dirs), as_f64(tmin)
     grid, max_cell = _grid(accel)
-    _, _, trans = march(o, d, tm, *grid, float(accel.alpha_min), float(T_min), float(max_alpha), 0, max_cell,
+    _, _, _, trans = march(o, d, tm, *grid, float(accel.alpha_min), float(T_min), float(max_alpha), 0, max_cell,
                         False)
     return torch.from_numpy(trans)
