@@ -19,8 +19,6 @@ EXECUTOR ?= local
 PYTEST_ARGS ?=
 
 STAMP := $(VENV)/.lumibench-setup
-# torch on shared CPUs: active OpenMP waiting made 2 threads ~15x slower under load (method training, measured)
-export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: setup dataset train eval demo test bench clean-venv
 

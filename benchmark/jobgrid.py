@@ -304,6 +304,9 @@ def _run_local(fn: Callable, jobs: list[dict], workers: int) -> Iterator[tuple[d
         for job in jobs:
             yield job, fn(job)
         return
+    # several workers share the cores: their idle OpenMP threads sleep rather than spin (lumibench/threads.py);
+    # the spawned workers read it from the environment they inherit
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     ctx = multiprocessing.get_context("spawn")  # torch and fork do not mix
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         futures = {pool.submit(fn, job): job for job in jobs}

@@ -126,10 +126,12 @@ def test_parse_light_names_a_file_by_its_stem(tmp_path):
 
 @pytest.mark.parametrize("entry", ["method", "benchmark"])
 def test_entry_points_set_the_thread_environment_before_torch(entry):
-    """`python -m method` / `python -m benchmark` set OMP_WAIT_POLICY=PASSIVE and NUMBA_NUM_THREADS from
-    OMP_NUM_THREADS before torch or Numba load (the grid's workers inherit them): with active waiting, two
-    one-thread grid workers on a 2-core box ran stage 1 ~7x slower, and Numba's idle pool thread took ~25 %
-    of a one-thread worker's CPU. Values the user set are kept."""
+    """`python -m method` / `python -m benchmark` set NUMBA_NUM_THREADS from OMP_NUM_THREADS, and
+    OMP_WAIT_POLICY=PASSIVE where that is below the cores, before torch or Numba load (the grid's workers
+    inherit them): with spinning waits, two one-thread grid workers on a 2-core box ran stage 1 ~7x slower,
+    and Numba's idle pool thread took ~25 % of a one-thread worker's CPU. A process on every core keeps
+    OpenMP's default wait (`make demo`'s stage 1 116 s -> 60 s). Values the user set are kept."""
+    from lumibench.machine import usable_cores
     import subprocess
     import sys
 
@@ -142,6 +144,23 @@ def test_entry_points_set_the_thread_environment_before_torch(entry):
                              check=True)
         return out.stdout.split()
 
-    assert run() == ["PASSIVE", "None", "False", "False"]
-    assert run(OMP_NUM_THREADS="1") == ["PASSIVE", "1", "False", "False"]
+    below = "PASSIVE" if usable_cores() > 1 else "None"
+    assert run() == ["None", "None", "False", "False"]
+    assert run(OMP_NUM_THREADS="1") == [below, "1", "False", "False"]
+    assert run(OMP_NUM_THREADS=str(usable_cores())) == ["None", str(usable_cores()), "False", "False"]
     assert run(OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="2", OMP_WAIT_POLICY="ACTIVE")[:2] == ["ACTIVE", "2"]
+
+
+def test_grid_workers_beside_each_other_wait_passively(monkeypatch):
+    """Several local grid workers share the cores, so they start with OMP_WAIT_POLICY=PASSIVE (their idle
+    OpenMP threads sleep); a single job runs in the calling process and leaves the environment alone; a
+    policy the user set is kept."""
+    from benchmark.jobgrid import _run_local
+
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    assert [out for _, out in _run_local(os.getenv, ["OMP_WAIT_POLICY"], 1)] == [None]
+    assert "OMP_WAIT_POLICY" not in os.environ
+    outs = [out for _, out in _run_local(os.getenv, ["OMP_WAIT_POLICY"] * 2, 2)]
+    assert outs == ["PASSIVE", "PASSIVE"]
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    assert [out for _, out in _run_local(os.getenv, ["OMP_WAIT_POLICY"] * 2, 2)] == ["ACTIVE", "ACTIVE"]
