@@ -405,11 +405,13 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
         alpha = None if compiled else third  # the torch traversal's alphas (the grid's opacities)
     if compiled and not geometry_grad:
         # the geometry is a constant here (stage 2 freezes it; relighting and predictions take no gradient):
-        # each hit's Gaussian factor comes from the traversal (float64) and only the opacities are gathered
-        # and differentiated, where the recomputation below gathers 13 splat rows and 6 ray rows per hit and
-        # differentiates it all (stage 2: BENCHMARKS.md, issue 23, session 43)
-        alpha = torch.clamp_max(opacities.index_select(0, splat) * third.to(dt), max_alpha)
-    elif compiled or stale or needs_grad:
+        # each hit's Gaussian factor comes from the traversal (float64), and the compositing over the opacities
+        # and features is one compiled pass each way, where the recomputation below gathers 13 splat rows and 6
+        # ray rows per hit and differentiates it all (stage 2: BENCHMARKS.md, issue 23, sessions 43-44)
+        from .trace_numba import composite_hits
+
+        return composite_hits(opacities, features, ray, splat, third, R, max_alpha)
+    if compiled or stale or needs_grad:
         # differentiable recomputation on the composited hits only (rays are treated as constants); the torch
         # traversal computed the same alphas with the same operations, so without gradients they are reused
         # (the compiled one returns no alphas: with a gradient to the geometry they are computed here)

@@ -6,9 +6,10 @@ the cell's t-interval and whose alpha reaches alpha_min, sorted by t (ties in sp
 of a cell's entries); a hit is kept while the transmittance before it is >= T_min, and the ray stops at
 the first hit that fails. Rays are independent, so the kernel is parallel over blocks of rays; each ray
 writes at most ``cap`` hits into its own slots, and the rare ray with more is traced again with room
-for the most hits the stop rule allows. Only the traversal is compiled: the compositing of the kept
-hits stays in trace() (a few vector ops on the hits), which forms each alpha from the opacities it is
-given and the hit's Gaussian factor, returned here, or recomputes it where the geometry takes a gradient.
+for the most hits the stop rule allows. Where the geometry is a constant (stage 2, relighting, the
+predictions) the compositing of the kept hits is compiled too (composite_hits: each alpha from the opacity
+given and the hit's Gaussian factor, returned by the traversal; forward and backward); where the geometry
+takes a gradient, trace() recomputes the hits in torch and composites them there.
 Where no gradient and no feature is asked for (visibility when relighting, writing predictions, the
 diagnostic), the kernel's own transmittance is the answer and no hit list is kept (march_transmittance).
 """
@@ -16,11 +17,13 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 from numba import njit, prange
+from torch.autograd.function import once_differentiable
 
-from .raster_numba import as_f64, match_torch_threads
+from .raster_numba import as_f64, as_i64, match_torch_threads
 
 RAY_BLOCK = 256  # rays per parallel task (one set of scratch buffers each)
 CAP = 32  # hit slots per ray in the first pass
@@ -179,6 +182,118 @@ def compact(out_s, out_g, count, over_row, s2, g2, c2):
             spl[start[i] + j] = s2[k, j] if k >= 0 else out_s[i, j]
             gau[start[i] + j] = g2[k, j] if k >= 0 else out_g[i, j]
     return ray, spl, gau
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def composite_forward(start, splat, gauss, opac, feats, max_alpha, nt):
+    """Front-to-back compositing of the kept hits, ray by ray: the hits of ray i are start[i]:start[i + 1],
+    each with alpha = min(opacity x Gaussian factor, max_alpha). Per ray its transmittance after the hits and
+    its composited features (R, C) (C may be 0). Float64 throughout; blocks of rays dealt to ``nt`` tasks."""
+    R = start.shape[0] - 1
+    C = feats.shape[1]
+    trans = np.ones(R)
+    out = np.zeros((R, C))
+    n_blocks = (R + RAY_BLOCK - 1) // RAY_BLOCK
+    for ti in prange(nt):
+        for b in range(ti, n_blocks, nt):
+            for i in range(b * RAY_BLOCK, min(R, (b + 1) * RAY_BLOCK)):
+                t = 1.0
+                for k in range(start[i], start[i + 1]):
+                    s = splat[k]
+                    a = min(opac[s] * gauss[k], max_alpha)
+                    w = a * t
+                    for c in range(C):
+                        out[i, c] += w * feats[s, c]
+                    t *= 1.0 - a
+                trans[i] = t
+    return trans, out
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def composite_backward(start, splat, gauss, opac, feats, max_alpha, trans, out, g_t, g_f, nt):
+    """Gradients of composite_forward w.r.t. the opacities (N,) and features (N, C), given the upstream
+    gradients of the transmittance (R,) and the features (R, C). For hit k of a ray with weights w_j = a_j T_j:
+    dL/da_k = gF.f_k T_k - (gT T_final + sum_{j>k} w_j gF.f_j) / (1 - a_k), the sum over later hits being the
+    ray's total gF.out minus a running prefix. One gradient buffer per task (blocks of rays dealt
+    round-robin), summed in task order: the result does not depend on scheduling."""
+    R = start.shape[0] - 1
+    N = opac.shape[0]
+    C = feats.shape[1]
+    g_o = np.zeros((nt, N))
+    g_c = np.zeros((nt, N, C))
+    n_blocks = (R + RAY_BLOCK - 1) // RAY_BLOCK
+    for ti in prange(nt):
+        go = g_o[ti]
+        gc = g_c[ti]
+        for b in range(ti, n_blocks, nt):
+            for i in range(b * RAY_BLOCK, min(R, (b + 1) * RAY_BLOCK)):
+                if start[i] == start[i + 1]:
+                    continue
+                total = g_t[i] * trans[i]
+                for c in range(C):
+                    total += g_f[i, c] * out[i, c]
+                t = 1.0
+                prefix = 0.0
+                for k in range(start[i], start[i + 1]):
+                    s = splat[k]
+                    raw = opac[s] * gauss[k]
+                    a = min(raw, max_alpha)
+                    w = a * t
+                    gw = 0.0
+                    for c in range(C):
+                        gw += g_f[i, c] * feats[s, c]
+                        gc[s, c] += w * g_f[i, c]
+                    prefix += gw * w
+                    if raw < max_alpha:
+                        go[s] += (gw * t - (total - prefix) / (1.0 - a)) * gauss[k]
+                    t *= 1.0 - a
+    out_o = g_o[0].copy()
+    out_c = g_c[0].copy()
+    for ti in range(1, nt):
+        out_o += g_o[ti]
+        out_c += g_c[ti]
+    return out_o, out_c
+
+
+class _CompositeHits(torch.autograd.Function):
+    """(opacities (N,), features (N, C)) -> (transmittance (R,), composited features (R, C)) over a fixed list
+    of hits with their Gaussian factors: trace()'s compositing where the geometry is a constant (stage 2,
+    relighting, predictions), one compiled pass each way instead of a dozen segmented torch ops and their
+    backward (BENCHMARKS.md, issue 23, session 44)."""
+
+    @staticmethod
+    def forward(ctx, opacities, features, start, splat, gauss, max_alpha):
+        match_torch_threads()
+        nt = max(1, numba.get_num_threads())
+        op, ft = as_f64(opacities), as_f64(features)
+        trans, out = composite_forward(start, splat, gauss, op, ft, max_alpha, nt)
+        ctx.kernel_args = (start, splat, gauss, op, ft, max_alpha, trans, out, nt)
+        ctx.dtype = opacities.dtype
+        return torch.from_numpy(trans).to(opacities.dtype), torch.from_numpy(out).to(opacities.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_trans, g_out):
+        start, splat, gauss, op, ft, max_alpha, trans, out, nt = ctx.kernel_args
+        g_t = np.zeros(trans.shape[0]) if g_trans is None else as_f64(g_trans)
+        g_f = np.zeros(out.shape) if g_out is None else as_f64(g_out)
+        match_torch_threads()
+        g_o, g_c = composite_backward(start, splat, gauss, op, ft, max_alpha, trans, out, g_t, g_f, nt)
+        need_o, need_f = ctx.needs_input_grad[:2]
+        return (torch.from_numpy(g_o).to(ctx.dtype) if need_o else None,
+                torch.from_numpy(g_c).to(ctx.dtype) if need_f else None, None, None, None, None)
+
+
+def composite_hits(opacities, features, ray, splat, gauss, num_rays: int, max_alpha: float):
+    """Transmittance (R,) and composited features (R, C), or None without features, of the hits (ray sorted,
+    each ray's hits front to back) with alpha = min(opacity x gauss, max_alpha); differentiable w.r.t. the
+    opacities and features."""
+    counts = torch.bincount(ray, minlength=num_rays)
+    start = np.zeros(num_rays + 1, np.int64)
+    np.cumsum(counts.numpy(), out=start[1:])
+    feats = features if features is not None else opacities.new_zeros(opacities.shape[0], 0)
+    T, out = _CompositeHits.apply(opacities, feats, start, as_i64(splat), as_f64(gauss), float(max_alpha))
+    return T, (out if features is not None else None)
 
 
 def _grid(accel):

@@ -46,6 +46,8 @@ def warm() -> list[str]:
         accel = TraceAccel.build(*[p.detach() for p in params[:4]])
         trace(*[p.detach() for p in params[:4]], None, o, d, 0.02, accel=accel, backend="numba")  # visibility
     trace(*params, o, d, 0.02, accel=accel, backend="numba")[1].sum().backward()  # hits, differentiable
+    frozen = [p.detach() for p in params[:3]] + params[3:]  # stage 2: the compiled compositing of the hits
+    sum(v.sum() for v in trace(*frozen, o, d, 0.02, accel=accel, backend="numba")).backward()
     from method.model.blend_numba import blend_at_nodes  # the nodes' blend (model.deform_nodes)
 
     x = params[0].detach().clone().requires_grad_(True)
