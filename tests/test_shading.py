@@ -292,6 +292,33 @@ def test_compiled_cosine_weights_match_the_torch_reference():
         torch.set_num_threads(threads)
 
 
+def test_compiled_cosine_weights_skip_whole_texels_bit_for_bit():
+    """Texels wholly above or below a normal's horizon skip their loop over the cells (texel_cones): the
+    weights and the gradient are bit-identical to the loop over every cell of every texel (a bound of 1
+    classifies nothing), on normals that put texels in all three classes, float32 unit normals included."""
+    pytest.importorskip("numba")
+    from method.shading import quadrature_numba as qn
+
+    gen = torch.Generator().manual_seed(11)
+    for h, w, sub in ((8, 16, 4), (16, 32, 4)):
+        mom = texel_moments(h, w, sub, dtype=torch.float64).numpy()
+        n = _unit(torch.randn(57, 3, generator=gen, dtype=torch.float64))
+        n = torch.cat([n, torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)])
+        n = _unit(n).float().double().numpy()  # unit in float32, as stage 2 passes them
+        g = torch.randn(n.shape[0], h * w, generator=gen, dtype=torch.float64).numpy()
+        centre, lim, total = qn.texel_cones(mom)
+        dc = n @ centre.T
+        bound = np.linalg.norm(n, axis=1)[:, None] * lim[None, :] + qn.CONE_MARGIN
+        above, below = int((dc > bound).sum()), int((dc < -bound).sum())
+        assert above > 0 and below > 0 and above + below < dc.size  # every class is exercised
+        loop_all = np.ones_like(lim)
+        for nt in (1, 2):
+            assert np.array_equal(qn.cosine_forward(n, mom, centre, lim, nt),
+                                  qn.cosine_forward(n, mom, centre, loop_all, nt))
+            assert np.array_equal(qn.cosine_backward(n, mom, centre, lim, total, g, nt),
+                                  qn.cosine_backward(n, mom, centre, loop_all, total, g, nt))
+
+
 def test_env_quadrature_is_exact_unshadowed_and_unbiased_under_shadow():
     """The control variate (render.py): with nothing blocking, the diffuse term is the exact integral at
     any direction count; with a blocker, its mean over seeds is the plain estimator's (unbiased) and a
