@@ -141,6 +141,24 @@ def test_trace_values_and_gradients_equal_torch(seed):
         _close(x, y, 1e-10, "grad")
 
 
+@pytest.mark.parametrize("seed, dtype", [(0, torch.float64), (1, torch.float64), (2, torch.float32)])
+def test_trace_grid_built_by_the_kernel_equals_torchs(seed, dtype):
+    """TraceAccel.build's candidate tests compiled (trace_numba.grid_entries): the same cells, entries in the
+    same order, blocks and slots as the torch build, on splats of several sizes (some spanning many cells),
+    float32 too; and the same hits when traced."""
+    params = [p.to(dtype) for p in trace_scene(n=300, seed=seed, scale=(0.02, 0.4), opacity=(0.005, 0.95))]
+    for cell_factor in (0.5, 1.0):
+        a = TraceAccel.build(*params[:4], cell_factor=cell_factor, backend="torch")
+        b = TraceAccel.build(*params[:4], cell_factor=cell_factor, backend="numba")
+        assert a.res == b.res and int(torch.bincount(a.entries).max()) > 8  # some splats span many cells
+        for name in ("cell_start", "entries", "blk_start", "blk_plane", "slot_splat"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+    o, d = random_rays(seed=seed)
+    Ta, Fa = trace(*params, o.to(dtype), d.to(dtype), 0.0, accel=a, backend="torch")
+    Tb, Fb = trace(*params, o.to(dtype), d.to(dtype), 0.0, accel=b, backend="torch")
+    assert torch.equal(Ta, Tb) and torch.equal(Fa, Fb)
+
+
 def test_trace_rays_with_more_hits_than_the_first_pass_holds(monkeypatch):
     """A ray with more kept hits than the first pass's slots is traced again with room for all of them."""
     import method.splat.trace_numba as tn

@@ -60,12 +60,15 @@ class TraceAccel:
 
     @staticmethod
     def build(means, quats, scales, opacities, alpha_min: float = 0.01, cell_size: float | None = None,
-              max_cells: int = 1 << 21, block: int = 8, cell_factor: float = 0.5) -> "TraceAccel":
+              max_cells: int = 1 << 21, block: int = 8, cell_factor: float = 0.5,
+              backend: str | None = None) -> "TraceAccel":
         """Register every splat whose opacity can reach ``alpha_min`` in the cells its support overlaps.
 
         ``cell_size`` defaults to ``cell_factor`` x the median support radius (measured: finer cells multiply
         the entries and the build time, coarser cells the candidates per ray; see BENCHMARKS.md). ``block``:
-        slots per block (W); 4, 8 and 16 measured within noise of each other."""
+        slots per block (W); 4, 8 and 16 measured within noise of each other. ``backend`` (None: the process
+        default): on the compiled one the (splat, cell) candidates are enumerated and tested in a kernel
+        (trace_numba.grid_entries), the same tests in float64; in torch they are tensors of every candidate."""
         check_splats(means, quats, scales, opacities)
         dev, dt = means.device, means.dtype
         with torch.no_grad():
@@ -100,36 +103,12 @@ class TraceAccel:
             res_t = torch.tensor(res, device=dev)
             c0 = torch.floor(((means - half)[live] - bmin) / cell).long().clamp_min(0)
             c1 = torch.minimum(torch.floor(((means + half)[live] - bmin) / cell).long(), res_t - 1)
-            span = c1 - c0 + 1
-            cnt = span.prod(1)
-            total = int(cnt.sum())
-            which = torch.repeat_interleave(torch.arange(live.numel(), device=dev), cnt, output_size=total)
-            off = torch.arange(total, device=dev) - (torch.cumsum(cnt, 0) - cnt).index_select(0, which)
-            sp = span.index_select(0, which)
-            iz = off % sp[:, 2]
-            iy = torch.div(off, sp[:, 2], rounding_mode="floor") % sp[:, 1]
-            ix = torch.div(off, sp[:, 2] * sp[:, 1], rounding_mode="floor")
-            cidx = c0.index_select(0, which) + torch.stack([ix, iy, iz], 1)
-            sid = live.index_select(0, which)
-            # keep only cells the splat's plane crosses (conservative slab test with a small margin)
-            centre = bmin + (cidx.to(dt) + 0.5) * cell
-            nn = n.index_select(0, sid)
-            dist = ((centre - means.index_select(0, sid)) * nn).sum(1).abs()
-            reach = 0.5 * (nn.abs() * cell).sum(1) * 1.001 + pad
-            # and whose in-plane footprint (a disc of the cell's half-diagonal) meets the support ellipse:
-            # box-vs-circle test in the splat's (u, v) units, conservative
-            rel = centre - means.index_select(0, sid)
-            a_s, b_s = a.index_select(0, sid), b.index_select(0, sid)
-            la, lb = (a_s * a_s).sum(1), (b_s * b_s).sum(1)
-            rho = 0.5 * float(cell.norm()) * 1.001 + pad
-            du = ((rel * a_s).sum(1).abs() / la - rho / la.sqrt()).clamp_min(0.0)
-            dv = ((rel * b_s).sum(1).abs() / lb - rho / lb.sqrt()).clamp_min(0.0)
-            kk = k.index_select(0, sid)
-            keep = torch.nonzero((dist <= reach) & (du * du + dv * dv <= kk * kk)).squeeze(1)
-            sid, cidx = sid.index_select(0, keep), cidx.index_select(0, keep)
-            flat = (cidx[:, 0] * res[1] + cidx[:, 1]) * res[2] + cidx[:, 2]
-            order = torch.argsort(flat, stable=True)
-            flat, sid = flat.index_select(0, order), sid.index_select(0, order)
+            if resolve(backend, dev) == "numba":
+                from .trace_numba import grid_entries
+
+                flat, sid = grid_entries(live, c0, c1, means, n, a, b, k, bmin, cell, pad, res)
+            else:
+                flat, sid = _grid_entries_torch(live, c0, c1, means, n, a, b, k, bmin, cell, pad, res)
             n_cells = res[0] * res[1] * res[2]
             counts = torch.bincount(flat, minlength=n_cells)
             cell_start = torch.cat([torch.zeros(1, dtype=torch.long, device=dev), torch.cumsum(counts, 0)])
@@ -149,6 +128,44 @@ class TraceAccel:
             slot_splat[slot] = sid
             return TraceAccel(bmin, cell, res, cell_start, sid, W, blk_start, blk_plane, params.contiguous(), slot_splat,
                               alpha_min, means.shape[0])
+
+
+def _grid_entries_torch(live, c0, c1, means, n, a, b, k, bmin, cell, pad: float, res):
+    """(cell id, splat id) of every splat in every cell of its support's bounding box [c0, c1] whose box its
+    plane crosses and whose in-plane footprint meets the support ellipse, sorted by cell (stably: a cell's
+    splats in the order of ``live``)."""
+    dev, dt = means.device, means.dtype
+    span = c1 - c0 + 1
+    cnt = span.prod(1)
+    total = int(cnt.sum())
+    which = torch.repeat_interleave(torch.arange(live.numel(), device=dev), cnt, output_size=total)
+    off = torch.arange(total, device=dev) - (torch.cumsum(cnt, 0) - cnt).index_select(0, which)
+    sp = span.index_select(0, which)
+    iz = off % sp[:, 2]
+    iy = torch.div(off, sp[:, 2], rounding_mode="floor") % sp[:, 1]
+    ix = torch.div(off, sp[:, 2] * sp[:, 1], rounding_mode="floor")
+    cidx = c0.index_select(0, which) + torch.stack([ix, iy, iz], 1)
+    sid = live.index_select(0, which)
+    # keep only cells the splat's plane crosses (conservative slab test with a small margin)
+    centre = bmin + (cidx.to(dt) + 0.5) * cell
+    nn = n.index_select(0, sid)
+    dist = ((centre - means.index_select(0, sid)) * nn).sum(1).abs()
+    reach = 0.5 * (nn.abs() * cell).sum(1) * 1.001 + pad
+    # and whose in-plane footprint (a disc of the cell's half-diagonal) meets the support ellipse:
+    # box-vs-circle test in the splat's (u, v) units, conservative
+    rel = centre - means.index_select(0, sid)
+    a_s, b_s = a.index_select(0, sid), b.index_select(0, sid)
+    la, lb = (a_s * a_s).sum(1), (b_s * b_s).sum(1)
+    rho = 0.5 * float(cell.norm()) * 1.001 + pad
+    du = ((rel * a_s).sum(1).abs() / la - rho / la.sqrt()).clamp_min(0.0)
+    dv = ((rel * b_s).sum(1).abs() / lb - rho / lb.sqrt()).clamp_min(0.0)
+    kk = k.index_select(0, sid)
+    keep = torch.nonzero((dist <= reach) & (du * du + dv * dv <= kk * kk)).squeeze(1)
+    sid, cidx = sid.index_select(0, keep), cidx.index_select(0, keep)
+    flat = (cidx[:, 0] * res[1] + cidx[:, 1]) * res[2] + cidx[:, 2]
+    order = torch.argsort(flat, stable=True)
+    flat, sid = flat.index_select(0, order), sid.index_select(0, order)
+    return flat, sid
 
 
 def _cols(mat, idx: torch.Tensor) -> list[torch.Tensor]:

@@ -296,6 +296,65 @@ def composite_hits(opacities, features, ray, splat, gauss, num_rays: int, max_al
     return T, (out if features is not None else None)
 
 
+@njit(cache=True, error_model="numpy")
+def grid_counts(live, c0, c1, means, nrm, ax_a, ax_b, k, bmin, cell, pad, res, out_flat, out_sid, fill):
+    """The candidate tests of trace._grid_entries_torch, one (splat, cell) at a time in float64: the cell's
+    box crossed by the splat's plane (slab test), and a disc of the cell's half-diagonal meeting the support
+    ellipse in the splat's (u, v) units. Without ``fill`` (a zero-length one) it counts the kept pairs per cell
+    (returned in out_flat's place: counts (n_cells + 1,), shifted by one); with it it writes each kept splat
+    at its cell's cursor (fill), in the order of ``live``."""
+    rho = 0.5 * math.sqrt(cell[0] * cell[0] + cell[1] * cell[1] + cell[2] * cell[2]) * 1.001 + pad
+    writing = fill.shape[0] > 0
+    for j in range(live.shape[0]):
+        s = live[j]
+        n0, n1, n2 = nrm[s, 0], nrm[s, 1], nrm[s, 2]
+        reach = 0.5 * (abs(n0) * cell[0] + abs(n1) * cell[1] + abs(n2) * cell[2]) * 1.001 + pad
+        a0, a1, a2 = ax_a[s, 0], ax_a[s, 1], ax_a[s, 2]
+        b0, b1, b2 = ax_b[s, 0], ax_b[s, 1], ax_b[s, 2]
+        la = a0 * a0 + a1 * a1 + a2 * a2
+        lb = b0 * b0 + b1 * b1 + b2 * b2
+        ra, rb = rho / math.sqrt(la), rho / math.sqrt(lb)
+        kk = k[s] * k[s]
+        for ix in range(c0[j, 0], c1[j, 0] + 1):
+            rx = bmin[0] + (ix + 0.5) * cell[0] - means[s, 0]
+            for iy in range(c0[j, 1], c1[j, 1] + 1):
+                ry = bmin[1] + (iy + 0.5) * cell[1] - means[s, 1]
+                for iz in range(c0[j, 2], c1[j, 2] + 1):
+                    rz = bmin[2] + (iz + 0.5) * cell[2] - means[s, 2]
+                    if abs(rx * n0 + ry * n1 + rz * n2) > reach:
+                        continue
+                    du = max(abs(rx * a0 + ry * a1 + rz * a2) / la - ra, 0.0)
+                    dv = max(abs(rx * b0 + ry * b1 + rz * b2) / lb - rb, 0.0)
+                    if du * du + dv * dv > kk:
+                        continue
+                    flat = (ix * res[1] + iy) * res[2] + iz
+                    if writing:
+                        out_sid[fill[flat]] = s
+                        out_flat[fill[flat]] = flat
+                        fill[flat] += 1
+                    else:
+                        out_flat[flat + 1] += 1
+
+
+def grid_entries(live, c0, c1, means, nrm, ax_a, ax_b, k, bmin, cell, pad: float, res):
+    """trace._grid_entries_torch compiled: (cell id, splat id) of the kept candidates sorted by cell, a
+    cell's splats in the order of ``live``, as int64 tensors; two passes (count, then fill), nothing of the
+    size of all candidates is stored. The tests run in float64 on the float32 inputs training passes, so a
+    candidate on a test's boundary may fall the other way than in torch's float32; both tests are
+    conservative (a margin beyond the support), so the hits a ray finds are the same."""
+    args = [np.ascontiguousarray(live.cpu().numpy().astype(np.int64)), np.ascontiguousarray(c0.cpu().numpy()),
+            np.ascontiguousarray(c1.cpu().numpy())] + [as_f64(t) for t in (means, nrm, ax_a, ax_b, k, bmin, cell)]
+    res_np = np.asarray(res, np.int64)
+    n_cells = int(res_np.prod())
+    counts = np.zeros(n_cells + 1, np.int64)
+    grid_counts(*args, float(pad), res_np, counts, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    start = np.cumsum(counts)  # counts[c + 1] held cell c's count: start[c] is cell c's first entry
+    flat = np.empty(start[-1], np.int64)
+    sid = np.empty(start[-1], np.int64)
+    grid_counts(*args, float(pad), res_np, flat, sid, start[:-1].copy())
+    return torch.from_numpy(flat), torch.from_numpy(sid)
+
+
 def _grid(accel):
     """The grid as the kernel reads it, converted once per TraceAccel (stage 2 reuses each frame's grid)."""
     g = accel.cache.get("numba")
