@@ -369,9 +369,10 @@ def trace(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacit
     ``ray_chunk`` rays are traversed at a time (peak memory of the traversal scales with it); it and
     ``steps_per_round`` (DDA cells per ray per round) default per device (RAY_CHUNK, STEPS_PER_ROUND).
     ``backend``: 'auto', 'torch' or 'numba' (method.splat.backend; None: the process default); the
-    compiled traversal returns the same hits (trace_numba), the compositing below is shared. Visibility
-    alone without gradients (``features`` None, the grid built from these opacities: relighting, the
-    predictions, the diagnostic) takes the compiled traversal's own float64 transmittance instead.
+    compiled traversal returns the same hits (trace_numba); with the geometry constant (no gradient to it:
+    stage 2, relighting, the predictions) it composites them too (trace_numba.composite_hits), otherwise the
+    compositing below is shared. Visibility alone without gradients (``features`` None, the grid built from
+    these opacities) takes the compiled traversal's own float64 transmittance instead.
     """
     check_splats(means, quats, scales, opacities, features)
     if origins.dim() != 2 or origins.shape[1] != 3 or dirs.shape != origins.shape:

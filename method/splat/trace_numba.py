@@ -342,8 +342,7 @@ def grid_entries(live, c0, c1, means, nrm, ax_a, ax_b, k, bmin, cell, pad: float
     size of all candidates is stored. The tests run in float64 on the float32 inputs training passes, so a
     candidate on a test's boundary may fall the other way than in torch's float32; both tests are
     conservative (a margin beyond the support), so the hits a ray finds are the same."""
-    args = [np.ascontiguousarray(live.cpu().numpy().astype(np.int64)), np.ascontiguousarray(c0.cpu().numpy()),
-            np.ascontiguousarray(c1.cpu().numpy())] + [as_f64(t) for t in (means, nrm, ax_a, ax_b, k, bmin, cell)]
+    args = [as_i64(t) for t in (live, c0, c1)] + [as_f64(t) for t in (means, nrm, ax_a, ax_b, k, bmin, cell)]
     res_np = np.asarray(res, np.int64)
     n_cells = int(res_np.prod())
     counts = np.zeros(n_cells + 1, np.int64)
