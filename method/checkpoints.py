@@ -16,6 +16,7 @@ from lumibench.io import atomic_path
 from method.model.deform import DeformNet
 from method.model.gaussians import Gaussians
 from method.model.materials import Materials
+from method.model.motion_basis import MotionBasis
 from method.model.nodes import MotionNodes
 from method.model.scene import DynamicScene
 
@@ -60,7 +61,8 @@ def scene_state(scene: DynamicScene) -> dict:
     """The model part of a checkpoint."""
     return {"gaussians": scene.g.state(), "net": None if scene.net is None else scene.net.state_dict(),
             "center": scene.center.cpu(), "extent": scene.extent, "temperature": scene.temperature,
-            "model": dict(scene.model_cfg), "nodes": None if scene.nodes is None else scene.nodes.state()}
+            "model": dict(scene.model_cfg), "nodes": None if scene.nodes is None else scene.nodes.state(),
+            "basis": None if scene.basis is None else scene.basis.state()}
 
 
 def build_net(m: dict) -> DeformNet:
@@ -83,6 +85,8 @@ def scene_from_checkpoint(ck: dict, cfg: dict, device) -> DynamicScene:
     scene.model_cfg = dict(m)
     if net is not None and ck.get("nodes") is not None:
         scene.nodes = MotionNodes.from_state(ck["nodes"], device)
+    if ck.get("basis") is not None:
+        scene.basis = MotionBasis.from_state(ck["basis"]).to(device)
     return scene
 
 

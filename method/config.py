@@ -137,6 +137,13 @@ def _validate(cfg: dict) -> None:
     if not isinstance(m["deform_nodes"], int) or isinstance(m["deform_nodes"], bool) or m["deform_nodes"] < 0:
         raise UserError(f"key 'model.deform_nodes' must be an integer >= 0 (0: the network at every Gaussian; "
                         f"got {m['deform_nodes']!r})")
+    if m["motion_bases"] < 0:
+        raise UserError(f"key 'model.motion_bases' must be >= 0 (0: the network alone; got {m['motion_bases']})")
+    if m["motion_bases"] and not (s["p_from_motion"] and m["separation"]):
+        raise UserError("key 'model.motion_bases' needs stage1.p_from_motion: true and model.separation: true "
+                        "(the bases are fitted to the moving Gaussians at the P split)")
+    if m["motion_bases"] and m["motion_knots"] < 2:
+        raise UserError(f"key 'model.motion_knots' must be >= 2 (got {m['motion_knots']})")
     if m["p_temperature"] <= 0:
         raise UserError(f"key 'model.p_temperature' must be positive (got {m['p_temperature']})")
     if s["init_points"] < 1:

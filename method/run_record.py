@@ -33,7 +33,8 @@ PREDATING = {"model.mlp_precision": "fp32",  # session 19
              "stage1.p_motion_floor": 0.0,  # session 20
              "stage2.env_fit_colour": False,  # session 27
              "model.deform_nodes": 0,  # session 28
-             "stage2.normal_filter": 0.0}  # session 38
+             "stage2.normal_filter": 0.0,  # session 38
+             "model.motion_bases": 0}  # session 45
 # settings that decide only how a trained run is shaded at test time (its predictions, relighting, the
 # diagnostic), not what its stages train: a resume or the next stage does not compare them, and writing the
 # predictions records the value they were written with (record_prediction_settings), so the run's settings
@@ -45,6 +46,10 @@ TEST_TIME = ("stage2.normal_filter",)
 DYNAMIC_ONLY = ("stage1.p_from_motion", "stage1.p_from_motion_logit", "stage1.p_motion_relative",
                 "stage1.p_motion_floor", "stage1.lr_mlp", "stage1.lr_mlp_final", "stage1.lr_p", "stage1.lambda_p",
                 "stage1.lambda_dc", "stage1.lambda_dmu")
+# settings only the motion bases read (method/model/motion_basis.py): a run without them (`model.motion_bases` 0)
+# neither compares nor hashes them, so the runs recorded before they existed keep their hash
+BASES_ONLY = ("model.motion_knots", "stage1.lr_basis_logit", "stage1.lr_basis_translation",
+              "stage1.lr_basis_rotation", "stage1.basis_sharpness")
 # settings only the P split reads (P = 1 for every Gaussian without it, method/model/scene.py): a run with
 # `model.separation` false (the wo_P ablation) neither compares nor hashes them, so a change to the split does
 # not set its wo_P runs apart either
@@ -107,13 +112,15 @@ def _is_static(rec: dict) -> bool:
 
 def _ignored(rec: dict) -> set[str]:
     """The settings that decide nothing in the run ``rec`` records: the network's and the split's in a static
-    run (its model section is left out whole), the split's in a run without the split."""
-    if _is_static(rec):
-        return set(DYNAMIC_ONLY)
+    run (its model section is left out whole), the split's in a run without the split, the motion bases' in
+    a run without them."""
     model = rec.get("model")
+    bases = set() if isinstance(model, dict) and model.get("motion_bases") else set(BASES_ONLY)
+    if _is_static(rec):
+        return set(DYNAMIC_ONLY) | bases
     if isinstance(model, dict) and model.get("separation") is False:
-        return set(SPLIT_ONLY)
-    return set()
+        return set(SPLIT_ONLY) | bases
+    return bases
 
 
 def check_settings(run_dir: Path, cfg: dict, stage: int, what: str) -> None:

@@ -15,6 +15,7 @@ from method.checkpoints import build_net, scene_from_checkpoint, scene_state
 from method.data import SceneData
 from method.model.density import DensityStats, densify_and_prune, reset_opacity
 from method.model.gaussians import GaussianAdam, Gaussians
+from method.model.motion_basis import MotionBasis
 from method.model.nodes import REFRESH_EVERY, MotionNodes
 from method.model.scene import Deformed, DynamicScene, render
 from method.optim import adam
@@ -288,9 +289,43 @@ def make_optimisers(scene: DynamicScene, cfg: dict) -> tuple[GaussianAdam, torch
     s = cfg["stage1"]
     lrs = {"means": s["lr_position"] * scene.extent, "quats": s["lr_rotation"], "log_scales": s["lr_scaling"],
            "opacity_logit": s["lr_opacity"], "colour_logit": s["lr_colour"], "p_logit": s["lr_p"]}
+    if "basis_logit" in scene.g.t:
+        lrs["basis_logit"] = s["lr_basis_logit"]
     gopt = GaussianAdam(scene.g, lrs)
     nopt = adam(scene.net.parameters(), lr=s["lr_mlp"], eps=1e-15) if scene.net is not None else None
     return gopt, nopt
+
+
+def basis_rates(scene: DynamicScene, s: dict) -> tuple[float, float]:
+    """The motion bases' starting rates: (translations, x the scene extent; rotations)."""
+    return s["lr_basis_translation"] * scene.extent, s["lr_basis_rotation"]
+
+
+def basis_optimiser(scene: DynamicScene, s: dict) -> torch.optim.Optimizer:
+    """Adam over the motion bases' translations and rotations (rates set each step in Stage1.forward)."""
+    b = scene.basis
+    lt, lq = basis_rates(scene, s)
+    return adam([{"params": [b.trans], "lr": lt}, {"params": [b.quat], "lr": lq}], lr=0.0, eps=1e-15)
+
+
+def basis_knots(times: list[float], count: int) -> list[float]:
+    """``count`` evenly spaced times over the training times' range, where the motion bases are sampled.
+
+    Why not every training time: there is one camera per time, so a basis sampled at each time is fitted
+    by one view at each, free to slide its objects along that camera's rays; at spheres' test views (all
+    at t = 0) the balls came out 3 dB worse than the network's while the training views fitted better
+    (BENCHMARKS.md, "rigid motion bases"). A knot between several times is seen from several cameras."""
+    if count < 2:
+        raise ValueError(f"model.motion_knots must be at least 2, got {count}")
+    lo, hi = min(times), max(times)
+    return [lo + (hi - lo) * k / (count - 1) for k in range(count)]
+
+
+@torch.no_grad()
+def trajectories(scene: DynamicScene, times: list[float]) -> torch.Tensor:
+    """(N, J, 3): every Gaussian's centre carried by the network to each of the times."""
+    x = scene.normalised(scene.g.means)
+    return torch.stack([scene.g.means + scene.field(x, float(t))[0].to(scene.g.means) for t in times], 1)
 
 
 
@@ -325,6 +360,7 @@ class Stage1:
         self.scene: DynamicScene | None = None
         self.gopt: GaussianAdam | None = None
         self.nopt: torch.optim.Optimizer | None = None
+        self.bopt: torch.optim.Optimizer | None = None  # the motion bases' (model.motion_bases), from the split on
         self.stats: DensityStats | None = None
         self.prior_seconds = 0.0
         self.view_times = [float(v.time) for v in data.train]
@@ -348,12 +384,16 @@ class Stage1:
         self.gopt.load_state_dict(ck["gopt"])
         if self.nopt is not None:
             self.nopt.load_state_dict(ck["nopt"])
+        if self.scene.basis is not None:
+            self.bopt = basis_optimiser(self.scene, self.s)
+            self.bopt.load_state_dict(ck["bopt"])
         self.stats = DensityStats(len(self.scene.g), self.device)
         self.stats.load(ck["density"])
 
     def state(self) -> dict:
         return {**scene_state(self.scene), "gopt": self.gopt.state_dict(),
-                "nopt": None if self.nopt is None else self.nopt.state_dict(), "density": self.stats.state(),
+                "nopt": None if self.nopt is None else self.nopt.state_dict(),
+                "bopt": None if self.bopt is None else self.bopt.state_dict(), "density": self.stats.state(),
                 "static": self.scene.static}
 
     # -- one step
@@ -379,14 +419,27 @@ class Stage1:
         if self.nopt is not None:
             for grp in self.nopt.param_groups:
                 grp["lr"] = mlp_lr(it, total, s)
+        if self.bopt is not None:  # the bases carry the motion the network did: its decay, from their own rates
+            for grp, base in zip(self.bopt.param_groups, basis_rates(scene, s)):
+                grp["lr"] = expon_lr(it, total, base, base * s["lr_mlp_final"])
         view = self._view(it, gen)
         if s["p_from_motion"] and it == s["warmup"] + 1 and not scene.static and scene.separation:
             moving = on_moving_objects(scene, self.data.train)  # before the split bakes the offsets in
+            bases = self.cfg["model"]["motion_bases"]
+            knots = basis_knots(self.train_times, self.cfg["model"]["motion_knots"]) if bases else []
+            traj = trajectories(scene, knots) if bases else None
             info = assign_p_from_motion(scene, self.train_times, None, s["p_from_motion_logit"],
                                         s["p_motion_relative"], s["p_motion_floor"])
             if moving is not None:
                 info["check"] = split_check(moving, scene.g.t["p_logit"] < 0)
             self.gopt.reset_values("p_logit", scene.g.t["p_logit"].detach())
+            if bases:
+                scene.basis = MotionBasis(knots, bases, network=True).to(self.device)
+                logits, info["motion_bases"] = scene.basis.fit(
+                    scene.g.means.detach(), traj, scene.g.t["p_logit"] > 0, gen, s["basis_sharpness"],
+                    scene.g.scales.detach().max(-1).values ** 2)
+                self.gopt.add_tensor("basis_logit", logits, s["lr_basis_logit"])
+                self.bopt = basis_optimiser(scene, s)
             log({"iteration": it, "p_from_motion": info})
         if scene.nodes is not None and it % REFRESH_EVERY == 0:
             scene.refresh_nodes()  # the means drift; a count change re-chooses them on its own
@@ -406,17 +459,23 @@ class Stage1:
         out = [(name, [t]) for name, t in self.scene.g.t.items()]
         if self.scene.net is not None:
             out.append(("the deformation network", list(self.scene.net.parameters())))
+        if self.scene.basis is not None:
+            out.append(("the motion bases", list(self.scene.basis.parameters())))
         return out
 
     def zero_grad(self) -> None:
         self.gopt.zero_grad()
         if self.nopt is not None:
             self.nopt.zero_grad(set_to_none=True)
+        if self.bopt is not None:
+            self.bopt.zero_grad(set_to_none=True)
 
     def optimiser_step(self, it: int, total: int) -> None:
         self.gopt.step()
         if self.nopt is not None:
             self.nopt.step()
+        if self.bopt is not None:
+            self.bopt.step()
 
     def after_step(self, it: int, gen: torch.Generator, timer) -> None:
         """Density control: gradient statistics in its window, clone/split/prune every densify_every."""

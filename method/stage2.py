@@ -32,14 +32,17 @@ from method.shading.deferred import (accel_for, display, raster_materials, rende
                                      tracer_for)
 from method.shading.envmap import LearnableEnvMap, lower_hemisphere_l2
 
-FROZEN = ("means", "quats", "log_scales", "p_logit")
+FROZEN = ("means", "quats", "log_scales", "p_logit", "basis_logit")
 
 
 def freeze_geometry(scene: DynamicScene) -> list[torch.nn.Parameter]:
     """Stop gradients to the frozen tensors; return the network parameters that stay trainable (the
     delta-colour head)."""
     for k in FROZEN:
-        scene.g.t[k].requires_grad_(False)
+        if k in scene.g.t:
+            scene.g.t[k].requires_grad_(False)
+    if scene.basis is not None:
+        scene.basis.requires_grad_(False)
     head = []
     if scene.net is not None:
         for name, p in scene.net.named_parameters():

@@ -14,6 +14,7 @@ import torch
 from method.optim import adam
 
 PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logit", "colour_logit", "p_logit")
+OPTIONAL = ("basis_logit",)  # (N, options) motion-basis weights' logits, from the warm-up's end (motion_basis.py)
 
 
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
@@ -48,7 +49,8 @@ class Gaussians:
         missing = [k for k in PER_GAUSSIAN if k not in tensors]
         if missing:
             raise ValueError(f"missing Gaussian tensors: {missing}")
-        self.t = {k: tensors[k].detach().clone().requires_grad_(True) for k in PER_GAUSSIAN}
+        self.t = {k: tensors[k].detach().clone().requires_grad_(True) for k in PER_GAUSSIAN + OPTIONAL
+                  if k in tensors}
 
     @staticmethod
     def from_points(points: torch.Tensor, init_opacity: float, p_init_logit: float,
@@ -107,9 +109,15 @@ class GaussianAdam:
 
     def __init__(self, gaussians: Gaussians, lrs: dict[str, float]):
         self.g = gaussians
-        groups = [{"params": [gaussians.t[k]], "lr": lrs[k], "name": k} for k in PER_GAUSSIAN if k in lrs]
+        groups = [{"params": [gaussians.t[k]], "lr": lrs[k], "name": k} for k in gaussians.t if k in lrs]
         self.names = [grp["name"] for grp in groups]
         self.opt = adam(groups, lr=0.0, eps=1e-15)
+
+    def add_tensor(self, name: str, values: torch.Tensor, lr: float) -> None:
+        """A new per-Gaussian tensor (one of OPTIONAL) with its own rate and fresh moments."""
+        self.g.t[name] = values.detach().clone().requires_grad_(True)
+        self.opt.add_param_group({"params": [self.g.t[name]], "lr": lr, "name": name})
+        self.names.append(name)
 
     def set_lr(self, name: str, lr: float) -> None:
         for grp in self.opt.param_groups:
@@ -137,12 +145,12 @@ class GaussianAdam:
 
     def keep(self, mask: torch.Tensor) -> None:
         """Keep the rows where ``mask`` is true (in every tensor and its Adam moments)."""
-        for name in PER_GAUSSIAN:
+        for name in list(self.g.t):
             self._replace(name, self.g.t[name][mask], lambda s: s[mask])
 
     def append(self, rows: dict[str, torch.Tensor]) -> None:
         """Append rows (a value for every tensor) with zero Adam moments."""
-        for name in PER_GAUSSIAN:
+        for name in list(self.g.t):
             extra = rows[name].to(self.g.t[name])
             self._replace(name, torch.cat([self.g.t[name].detach(), extra]),
                           lambda s, e=extra: torch.cat([s, torch.zeros_like(e)]))

@@ -11,6 +11,7 @@ from method import buffers
 from method.buffers import STAGE1
 from method.model.deform import DeformNet, binary_concrete
 from method.model.gaussians import Gaussians
+from method.model.motion_basis import MotionBasis
 from method.model.nodes import MotionNodes
 from method.splat.backend import on_the_kernels_threads
 from method.splat.camera import Camera
@@ -43,6 +44,8 @@ class DynamicScene:
         self.separation = bool(separation)      # False: the wo_P ablation (P = 1 always)
         self.model_cfg: dict = {}                # the config's model section, saved in checkpoints
         self.nodes: MotionNodes | None = None    # where the network is read (model.deform_nodes; None: every Gaussian)
+        self.basis: MotionBasis | None = None    # rigid motion bases blended with the network's offset from the
+                                                 # warm-up's end (model.motion_bases; None: the network alone)
 
     @property
     def static(self) -> bool:
@@ -115,6 +118,8 @@ class DynamicScene:
             d_col = self.net.heads(h)[2]  # the heads' one product, as uncached (the frozen ones cost nothing)
             if self.nodes is not None:  # blended as uncached: each output channel is blended on its own
                 d_col = self.nodes.blend_outputs(x, (d_col,))[0]
+        if self.basis is not None:
+            d_mu, d_rot = self.basis.offsets(means, quats, g.t["basis_logit"], t, (d_mu, d_rot))
         if not self.delta_colour:
             d_col = torch.zeros_like(d_col)
         pc = p[:, None]
@@ -122,7 +127,8 @@ class DynamicScene:
                         p, d_mu, d_col)
 
     def num_parameters(self) -> int:
-        return self.g.num_parameters() + (self.net.num_parameters() if self.net is not None else 0)
+        return self.g.num_parameters() + (self.net.num_parameters() if self.net is not None else 0) + \
+            (sum(q.numel() for q in self.basis.parameters()) if self.basis is not None else 0)
 
 
 def render(d: Deformed, camera: Camera, background: torch.Tensor,
