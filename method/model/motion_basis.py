@@ -3,7 +3,7 @@
 Why: the deformation network gives every Gaussian its own offset from its canonical place, so nothing ties
 a moving object's shape across times; at `small` the balls, the swinging crate and the mouse come out blurred
 on the training views themselves (BENCHMARKS.md, "Part 3, the moving objects"). Here each of B bases is one
-rigid motion over time (a rotation about a pivot and a translation per training time, linear in between),
+rigid motion over time (a rotation about a pivot and a translation per knot in time, linear in between),
 and a Gaussian's position and rotation at time t are its canonical ones moved by the blend of the bases'
 transforms (linear blend skinning): x_t = (sum_k w_k R_k(t)) mu + sum_k w_k b_k(t), q_t = (sum_k w_k q_k(t)) q.
 Basis 0 is the identity (static Gaussians keep it). The weights are a softmax of per-Gaussian logits
@@ -13,7 +13,7 @@ figure's limbs): bases alone lost 2.6 dB on jumpingjacks where the network optio
 "rigid motion bases").
 
 Initialised from what the network learned in the warm-up: the moving Gaussians' trajectories at the
-training times clustered by k-means, and each cluster's rigid motion per time fitted to its members by
+knots clustered by k-means, and each cluster's rigid motion per knot fitted to its members by
 Kabsch's method; each Gaussian's logits from how well each basis explains its trajectory, the network's option scored
 as a misfit of the Gaussian's own size (Shape of Motion, Wang et al. 2024, uses SE(3) motion bases with
 per-Gaussian coefficients the same way). The bases are sampled at a few knots in time, not at every
