@@ -68,9 +68,10 @@ def kabsch(src: torch.Tensor, dst: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     c, cd = src.mean(0), dst.mean(0)
     h = (src - c).T @ (dst - cd)
     u, _, vt = torch.linalg.svd(h)
-    d = torch.sign(torch.linalg.det(vt.T @ u.T))
-    corr = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d if d != 0 else torch.ones_like(d)]))
-    r = vt.T @ corr @ u.T
+    corr = torch.ones(3, dtype=h.dtype, device=h.device)
+    if float(torch.linalg.det(vt.T @ u.T)) < 0:
+        corr[2] = -1.0  # the best proper rotation, not a reflection
+    r = vt.T @ torch.diag(corr) @ u.T
     return r, cd - c
 
 
@@ -131,9 +132,8 @@ class MotionBasis(nn.Module):
         """Each basis's (linear part (B + 1, 3, 3), offset (B + 1, 3), quaternion (B + 1, 4)) at time t, the
         identity first: x -> A x + b."""
         ts = self.times
-        i = int(torch.searchsorted(ts, torch.tensor(float(t), dtype=ts.dtype, device=ts.device)).clamp(1, ts.numel() - 1)) \
-            if ts.numel() > 1 else 0
         if ts.numel() > 1:
+            i = int(torch.searchsorted(ts, torch.tensor(float(t), dtype=ts.dtype, device=ts.device)).clamp(1, ts.numel() - 1))
             f = float(min(max((float(t) - float(ts[i - 1])) / max(float(ts[i] - ts[i - 1]), 1e-12), 0.0), 1.0))
             q = (1 - f) * self.quat[:, i - 1] + f * self.quat[:, i]
             tr = (1 - f) * self.trans[:, i - 1] + f * self.trans[:, i]
@@ -168,7 +168,8 @@ class MotionBasis(nn.Module):
     @torch.no_grad()
     def fit(self, means: torch.Tensor, traj: torch.Tensor, moving: torch.Tensor, generator: torch.Generator,
             sharpness: float = 2.0, network_err: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
-        """Initialise the bases from trajectories and return each Gaussian's logits (N, B + 1).
+        """Initialise the bases from trajectories and return each Gaussian's logits (N, B + 1; B + 2 with
+        ``network``).
 
         ``means`` (N, 3): the canonical means the bases will move; ``traj`` (N, J, 3): each Gaussian's
         position at the J knots (what the network drew in the warm-up); ``moving`` (N,): the
@@ -197,12 +198,11 @@ class MotionBasis(nn.Module):
                     self.trans[k, jj] = tr.to(self.trans)
                     prev = q
             info["cluster_sizes"] = torch.bincount(labels, minlength=self.bases).tolist()
-        err = torch.empty(n, self.bases + 1, dtype=means.dtype, device=means.device)
+        err = means.new_zeros(n, self.bases + 1)
         for jj in range(j):
             a, b, _ = self.at(float(self.times[jj]))
             pred = torch.einsum("kab,nb->nka", a, means) + b[None]      # (N, B + 1, 3)
-            e = ((pred - traj[:, jj, None]) ** 2).sum(-1)
-            err = e if jj == 0 else err + e
+            err += ((pred - traj[:, jj, None]) ** 2).sum(-1)
         err = err / j
         best = err[idx, 1:].min(1).values if idx.numel() else err[:, 0]
         if self.network:  # the network's option: what a rigid basis must beat (its own fit is exact)
