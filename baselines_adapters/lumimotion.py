@@ -39,7 +39,9 @@ VARIANTS = {
     "lumimotion": {"overrides": [], "static": False, "stage2": True},
     "wo_stage2": {"overrides": [], "static": False, "stage2": False},
     "wo_dc": {"overrides": ["model.delta_colour=false"], "static": False, "stage2": True},
-    "wo_P": {"overrides": ["model.separation=false"], "static": False, "stage2": True},
+    # without the split there are no moving Gaussians to fit rigid bases to (small's model.motion_bases): the
+    # network moves every Gaussian, as the paper's ablation has it
+    "wo_P": {"overrides": ["model.separation=false", "model.motion_bases=0"], "static": False, "stage2": True},
     "static": {"overrides": [], "static": True, "stage2": True},
 }
 DIAGNOSE_MAX_DIRS = 128  # directions per pixel of the diagnostic: the run's dirs_eval, at most this

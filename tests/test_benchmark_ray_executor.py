@@ -3,11 +3,14 @@
 A local two-node Ray cluster (ray.cluster_utils.Cluster: a head without CPUs and two worker nodes with one
 CPU each, all on this machine) runs a floors-only grid; its result files and predictions must equal those
 of the same grid run with the local executor, except for the fields that record when and how fast it ran
-(``created``; ``timings`` in results and meta.json).
+(``created``; ``timings`` in results and meta.json), and for float32 rounding in the last bits of the scores:
+a Ray worker holding one CPU runs torch on one thread, and on some CPUs (a Xeon with AMX, session 46) the
+LPIPS network's convolutions round differently on one thread than on two (relative 1e-7).
 """
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import socket
@@ -24,6 +27,28 @@ ray = pytest.importorskip("ray")
 
 VARYING = {"results.json": ("created", "timings"), "results_strict.json": ("created", "timings"),
            "meta.json": ("timings",)}  # when and how fast it ran
+
+
+def _same(a: object, b: object, where: str = "") -> list[str]:
+    """Where ``a`` and ``b`` differ: floats within a relative 1e-6 (float32 rounding) count as equal,
+    everything else must be equal exactly."""
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-12) else [f"{where}: {a} != {b}"]
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return [f"{where}: keys {sorted(set(a) ^ set(b))}"]
+        return [d for k in a for d in _same(a[k], b[k], f"{where}/{k}")]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{where}: lengths {len(a)} != {len(b)}"]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _same(x, y, f"{where}[{i}]")]
+    return [] if a == b else [f"{where}: {a!r:.80} != {b!r:.80}"]
+
+
+def test_same_allows_float32_rounding_and_nothing_else():
+    assert not _same({"x": [0.014683172106742859, "a"]}, {"x": [0.014683171641081572, "a"]})
+    assert _same({"x": 0.0147}, {"x": 0.0146}) and _same({"x": "a"}, {"x": "b"}) and _same({"x": 1}, {"y": 1})
+    assert _same(b"png", b"pnG") and _same([1.0], [1.0, 2.0])
 
 
 def _tree(root: Path) -> dict[str, object]:
@@ -81,7 +106,7 @@ def test_ray_grid_on_two_nodes_equals_the_local_grid(tmp_path, monkeypatch, two_
     got = {"runs": _tree(paths.runs), "results": _tree(paths.results)}
     assert sorted(got["results"]) == sorted(expected["results"])  # every result file, no more
     assert sum(Path(k).name in ("results.json", "results_strict.json") for k in got["results"]) == 12
-    assert got == expected
+    assert not _same(got, expected)  # the same files and values, up to float32 rounding
     # the jobs ran on the two worker nodes, in Ray worker processes, not in this one
     nodes = {o["node"] for _, o in report.executed}
     assert nodes == two_node_cluster

@@ -33,6 +33,22 @@ def test_budget_variants_parse_and_reject_nonsense():
         get_adapter("lumimotion@fast")
 
 
+@pytest.mark.parametrize("profile", ["ci", "demo", "small", "full"])
+def test_every_variant_loads_its_settings_at_every_profile(profile):
+    """Each in-project variant's overrides make a valid configuration at each profile: small moves the
+    Gaussians by rigid motion bases fitted at the P split, which wo_P (no split) must turn off, or its every
+    grid job fails on the settings before training."""
+    from baselines_adapters.lumimotion import VARIANTS
+    from method.config import load_method_config
+
+    for base in VARIANTS:
+        for name in (base, f"{base}@cap2000", f"{base}@0.5"):
+            cfg = load_method_config(profile, get_adapter(name).overrides(profile))
+            if base == "wo_P":
+                assert not cfg["model"]["separation"] and cfg["model"]["motion_bases"] == 0
+    assert load_method_config("small")["model"]["motion_bases"] > 0  # so the wo_P case above guards something
+
+
 def test_one_stages_budget_scales_that_stage_alone():
     """`make demo`'s lumimotion@s1x8: stage 1 at 8x ci's schedule, stage 2 at ci's own."""
     from method.config import ITERATION_KEYS, load_method_config

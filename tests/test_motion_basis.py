@@ -240,7 +240,8 @@ def test_the_bases_settings_hash_only_where_the_bases_are_on(tmp_path):
         write_record(tmp_path / name, load_method_config("small", extra), identity(tmp_path / "s", "city", 0, "cpu", False))
         return settings_hash(tmp_path / name)
 
-    assert h("off", []) == h("off_knots", ["model.motion_knots=6", "stage1.basis_sharpness=2.0"])
+    off = ["model.motion_bases=0"]  # small's default is 8 since session 46
+    assert h("off", off) == h("off_knots", off + ["model.motion_knots=6", "stage1.basis_sharpness=2.0"])
     on = h("on", ["model.motion_bases=8"])
-    assert on != h("off", [])
+    assert on != h("off", off)
     assert on != h("on_knots", ["model.motion_bases=8", "model.motion_knots=6"])

@@ -318,7 +318,9 @@ def test_a_run_without_the_split_neither_hashes_nor_compares_the_split_settings(
     from method.run_record import SPLIT_ONLY, check_settings, identity, settings_hash, write_record
 
     for separation in (True, False):
-        now = load_method_config("small", [f"model.separation={str(separation).lower()}"])
+        # without the split, small's motion bases go too (wo_P's overrides: nothing to fit them to)
+        now = load_method_config("small", [f"model.separation={str(separation).lower()}"]
+                                 + ([] if separation else ["model.motion_bases=0"]))
         for name, edit in (("now", None), ("logit", ("stage1", "p_from_motion_logit", 9.0)),
                            ("lp", ("stage1", "lambda_p", 0.5)), ("temp", ("model", "p_temperature", 2.0))):
             run = tmp_path / f"{name}_{separation}"
@@ -337,9 +339,9 @@ def test_a_run_without_the_split_neither_hashes_nor_compares_the_split_settings(
                     check_settings(tmp_path / f"{name}_True", now, 2, "stage 2")
             else:
                 check_settings(tmp_path / f"{name}_False", now, 2, "stage 2")
-    wo_p = load_method_config("small", ["model.separation=false"])
+    wo_p = load_method_config("small", ["model.separation=false", "model.motion_bases=0"])
     run = tmp_path / "opacity_False"
-    write_record(run, load_method_config("small", ["model.separation=false", "stage1.lr_opacity=0.5"]),
+    write_record(run, load_method_config("small", ["model.separation=false", "model.motion_bases=0", "stage1.lr_opacity=0.5"]),
                  identity(tmp_path / "s", "city", 0, "cpu", False))
     assert settings_hash(run) != settings_hash(tmp_path / "now_False")
     with pytest.raises(UserError, match="stage1.lr_opacity"):
