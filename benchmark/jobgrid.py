@@ -445,8 +445,8 @@ def run_jobs(jobs: list[dict], executor: str = "local", workers: int = 1, descri
         ray_connect(workers)  # before the progress bar: a refused address is one line, not a stalled bar
     runner = _run_local if executor == "local" else _run_ray
     outcomes = []
-    for job, outcome in track(runner(execute, jobs, workers), total=len(jobs), description=description,
-                              unit="jobs", disable=quiet):
+    for job, outcome in track(runner(execute, jobs, workers), total=len(jobs), description=description, unit="jobs",
+                              disable=quiet, label=lambda done: f"{job_label(done[0])} {done[1]['status']}"):
         if outcome.get("lost") and job["kind"] == "method":
             record_failure(job, outcome["error"])
         outcomes.append((job, outcome))
