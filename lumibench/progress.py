@@ -17,7 +17,7 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, 
 
 T = TypeVar("T")
 
-LINE_INTERVAL_S = 30.0  # a line per half minute: a 4,500-iteration stage gives ~30-60 lines, a grid job one each
+LINE_INTERVAL_S = 30.0  # a line per half minute: 10-20 for a `small` stage 1 (5-10 min), one per grid job
 
 
 def make_progress(disable: bool = False) -> Progress | "LineProgress":
