@@ -112,8 +112,9 @@ class LumiMotionAdapter(MethodAdapter):
     # predictions.py VERSION); 3: meta.json carries the relight diagnostic (the same predictions as 2), so a
     # rescore of a version-2 folder predicts again (no training) and its results get the block; 4: the normal
     # map filtered before test-time shading where the profile asks (stage2.normal_filter; `small`), so stored
-    # version-3 predictions are shaded again from their checkpoints (no training)
-    version = "4"
+    # version-3 predictions are shaded again from their checkpoints (no training); 5: indirect light from the
+    # Gaussians relit under the test light (stage2.relight_indirect), so version-4 predictions are shaded again
+    version = "5"
 
     def __init__(self, name: str = "lumimotion", budget: str | None = None):
         base = name.split("@", 1)[0]
@@ -204,9 +205,10 @@ class LumiMotionAdapter(MethodAdapter):
         return keep
 
 
-def _reusable_record(path: Path, views: int, normal_filter: float = 0.0) -> dict | None:
+def _reusable_record(path: Path, views: int, normal_filter: float = 0.0,
+                     relight_indirect: bool = False) -> dict | None:
     """The stored diagnostic record at ``path`` when it has the current steps, all ``views`` test views and
-    the run's test-time normal filter (a record from before the setting: none)."""
+    the run's test-time normal filter and relit indirect light (a record from before a setting: off)."""
     import json
 
     from method.diagnose import STEPS
@@ -220,6 +222,8 @@ def _reusable_record(path: Path, views: int, normal_filter: float = 0.0) -> dict
         return None
     if float(rec.get("normal_filter", 0.0)) != float(normal_filter):
         return None
+    if bool(rec.get("relight_indirect", False)) != bool(relight_indirect):
+        return None
     return rec
 
 
@@ -229,11 +233,12 @@ def diagnose_block(run_dir: Path, scene_dir: Path, test_light: str) -> dict:
     from lumibench import layout
     from method import diagnose as dg
     from method.relight import read_run_config
-    from method.shading.deferred import normal_filter_sigma
+    from method.shading.deferred import normal_filter_sigma, relight_indirect
 
     views = len(layout.read_transforms(scene_dir, "test").frames)
     s2 = read_run_config(run_dir)["stage2"]
-    rec = _reusable_record(Path(run_dir) / "diagnose" / test_light / "diagnose.json", views, normal_filter_sigma(s2))
+    rec = _reusable_record(Path(run_dir) / "diagnose" / test_light / "diagnose.json", views, normal_filter_sigma(s2),
+                           relight_indirect(s2))
     if rec is None:
         dirs = min(int(s2["dirs_eval"]), DIAGNOSE_MAX_DIRS)
         # the scene the benchmark scores on (the static variant trained on its static twin)

@@ -1,6 +1,7 @@
 """Where a run's relighting error is: the test views relit under a test light with one of our per-pixel
 buffers replaced by the ground truth at a time (albedo, roughness, normals), then all three, which leaves
-only our geometry (the shading points and the traced visibility) and the shading estimator; and all three
+only our geometry (the shading points, the traced visibility and, with ``stage2.relight_indirect``, the bounce
+light of our Gaussians relit under the test light) and the shading estimator; and all three
 without our traced shadows (V = 1), which says whether the shadows our Gaussians cast help or hurt.
 
 Every step shades the same pixels (our coverage > 0.5) with the same directions and traversals, so the
@@ -33,8 +34,8 @@ from method.data import load_scene
 from method.devices import check_device
 from method.relight import read_run_config, resolve_scene_dir
 from method.outputs import write_sheet
-from method.shading.deferred import (accel_for, display, normal_filter_sigma, pixel_inputs, test_time_raster,
-                                     tracer_for)
+from method.shading.deferred import (accel_for, display, normal_filter_sigma, pixel_inputs, relight_indirect,
+                                     relit_radiance, test_time_raster, tracer_for)
 from method.shading.envmap import load_envmap
 from method.shading.render import shade_maps
 
@@ -121,8 +122,11 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
         a_lin = srgb_to_linear(buffers.channel(f, af, MATERIALS.albedo)).clamp(s2["albedo_min"], s2["albedo_max"])
         mine = {"albedo": (a_lin * scale).clamp(0, 1), "roughness": buffers.channel(f, af, MATERIALS.roughness),
                 "normal": buffers.unit(r.normal.reshape(-1, 3)[fg])}
+        # bounce light from our Gaussians relit under the test light with the scaled albedo (as the benchmark's
+        # relight_scaled is shaded), at every step: the steps swap the shaded pixel's buffers, not the scene
+        radiance = (relit_radiance(d, mats, [env], v.camera.center, s2, [scale]) if relight_indirect(s2) else None)
         tracer = tracer_for(d, accel_for(d, s2["trace_cell"]), s2["trace_offset"] * scene.extent, False,
-                            extent=scene.extent, replay=True)
+                            extent=scene.extent, replay=True, radiance=radiance)
         start = gen.get_state()
         row = [buffers.over_background(gt_img, gt_alpha[..., 0], bg.cpu().numpy())]
         ours = None
@@ -139,7 +143,8 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
                 pts, n, view, alb, rough = pixel_inputs(r, v.camera, fg, s2, step_tracer, override=override)
                 parts = shade_maps(pts.detach(), n, view, alb, rough, [env], n_dirs, gen,
                                    None if step_tracer is None else step_tracer.visibility,
-                                   env_quadrature=bool(s2["env_quadrature"]))[0]
+                                   step_tracer.indirect if step_tracer is not None and step_tracer.use_indirect
+                                   else None, env_quadrature=bool(s2["env_quadrature"]))[0]
                 rgb = parts["rgb"]
                 if name == "ours":
                     ours = parts
@@ -159,6 +164,7 @@ def diagnose(run_dir, test_light: str, *, dirs: int | None = None, views: int | 
         summary[name]["psnr_gain"] = summary[name]["psnr"] - summary["ours"]["psnr"]
     record = {"run": str(run_dir), "scene": scene_dir.name, "train_light": ident["light"], "test_light": test_light,
               "views": len(test), "dirs": n_dirs, "normal_filter": normal_filter_sigma(s2),
+              "relight_indirect": relight_indirect(s2),
               "albedo_scale": [float(c) for c in scale],
               "protocol": "lumimotion", "steps": summary,
               "per_view_psnr": {name: [s["psnr"] for s in scores[name]] for name, _ in STEPS}}

@@ -20,8 +20,9 @@ from method.outputs import write_p_maps
 from method.shading.deferred import display, render_pbr_view
 from method.devices import device_name
 
-VERSION = "3"  # 2: relight_scaled/ (the albedo scaled before shading, for the lumimotion protocol); 3: the test-time
-# normal filter (stage2.normal_filter), recorded in the run's config.yaml and so in settings_sha256
+VERSION = "4"  # 2: relight_scaled/ (the albedo scaled before shading, for the lumimotion protocol); 3: the test-time
+# normal filter (stage2.normal_filter), recorded in the run's config.yaml and so in settings_sha256; 4: indirect
+# light from the Gaussians relit under the test light (stage2.relight_indirect), recorded the same way
 
 
 def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, method: str = "lumimotion",

@@ -34,12 +34,13 @@ PREDATING = {"model.mlp_precision": "fp32",  # session 19
              "stage2.env_fit_colour": False,  # session 27
              "model.deform_nodes": 0,  # session 28
              "stage2.normal_filter": 0.0,  # session 38
-             "model.motion_bases": 0}  # session 45
+             "model.motion_bases": 0,  # session 45
+             "stage2.relight_indirect": False}  # session 48
 # settings that decide only how a trained run is shaded at test time (its predictions, relighting, the
 # diagnostic), not what its stages train: a resume or the next stage does not compare them, and writing the
 # predictions records the value they were written with (record_prediction_settings), so the run's settings
 # hash tells predictions shaded one way from the other
-TEST_TIME = ("stage2.normal_filter",)
+TEST_TIME = ("stage2.normal_filter", "stage2.relight_indirect")
 # stage-1 settings only the deformation network and the P split read (method/stage1.py: the split runs only
 # when the scene is not static, the network's optimiser and the dynamic loss terms only when it has one): a
 # static run neither compares nor hashes them, so a change to the split does not set its static runs apart

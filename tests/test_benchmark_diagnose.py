@@ -117,6 +117,16 @@ def test_adapter_diagnoses_each_test_light_once_and_reuses_the_record(tmp_path, 
     atomic_write_json(run / "diagnose" / "sunset" / "diagnose.json", {**rec, "normal_filter": 1.0})
     adapter.run(scene, "city", ["sunset"], 0, "ci", run / "predictions", runs)
     assert len(calls) == 5
+    # the same for the relit indirect light (stage2.relight_indirect): a record without it is not reused
+    # once the run shades with it, one with it is
+    (run / "config.yaml").write_text("run: {light: city, seed: 0}\nprofile: ci\n"
+                                     "stage2: {dirs_eval: 256, normal_filter: 1.0, relight_indirect: true}\n")
+    adapter.run(scene, "city", ["sunset"], 0, "ci", run / "predictions", runs)
+    assert len(calls) == 6
+    atomic_write_json(run / "diagnose" / "sunset" / "diagnose.json",
+                      {**rec, "normal_filter": 1.0, "relight_indirect": True})
+    adapter.run(scene, "city", ["sunset"], 0, "ci", run / "predictions", runs)
+    assert len(calls) == 6
     _finished_run(run)
 
     # a small dirs_eval is not raised to the cap

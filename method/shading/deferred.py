@@ -23,6 +23,15 @@ from method.splat.rasterize import RasterOutput, rasterize
 from method.splat.trace import TraceAccel
 
 
+def _channels(indirect, maps: list[int] | None):
+    """``indirect`` restricted to the 3-channel groups of ``maps`` (all of it for None): one map's bounce light
+    out of a tracer that carries several."""
+    if maps is None:
+        return indirect
+    cols = [3 * m + c for m in maps for c in range(3)]
+    return lambda o, dirs: indirect(o, dirs)[:, cols]
+
+
 def display(rgb_linear: torch.Tensor) -> torch.Tensor:
     """Blender's Standard view transform: clip to [0, 1], then the sRGB transfer function."""
     return linear_to_srgb(rgb_linear.clamp(0.0, 1.0))
@@ -60,10 +69,53 @@ def accel_for(d: Deformed, cell_factor: float = 1.0, opacities: torch.Tensor | N
 
 
 def tracer_for(d: Deformed, accel: TraceAccel, offset: float, indirect: bool, *, extent: float,
-               replay: bool = False) -> GaussianTracer:
-    """The tracer of the Gaussians at one time: visibility, and indirect light from their (stage-1) colours."""
+               replay: bool = False, radiance: torch.Tensor | None = None) -> GaussianTracer:
+    """The tracer of the Gaussians at one time: visibility, and indirect light from their (stage-1) colours,
+    or from ``radiance`` (N, 3k) linear (:func:`relit_radiance`)."""
     return GaussianTracer(d.means, d.quats, d.scales, d.opacities, d.colours if indirect else None, offset=offset,
-                          extent=extent, accel=accel, replay=replay)
+                          extent=extent, accel=accel, replay=replay, radiance=radiance)
+
+
+def relight_indirect(s2: dict) -> bool:
+    """Whether test-time shading traces indirect light from the Gaussians relit under the test light
+    (``stage2.relight_indirect``); a run recorded before the setting existed shaded without it."""
+    return bool(s2.get("relight_indirect", False))
+
+
+def relit_radiance(d: Deformed, mats: Materials, envs: list[torch.Tensor], camera_center: torch.Tensor, s2: dict,
+                   albedo_scales: list[torch.Tensor | None] | None = None) -> torch.Tensor:
+    """(N, 3 x len(envs)) linear radiance each Gaussian sends out when the scene is relit under each map: its
+    albedo (linearised and clamped as shading clamps it, times the map's ``albedo_scales`` entry where one is
+    given) / pi x the map's unshadowed irradiance at its normal, the normal turned towards the camera.
+
+    Why: the paper relights with indirect light traced against the Gaussians with "colors evaluated from the
+    rendering equation" under the new light (its stage-1 colours carry the training light). Here the
+    Gaussians are diffuse and unshadowed at the bounce: one bounce of the test light, no specular, as the
+    surfaces a shadow ray hits are seen from every side at once; the side is the one the camera sees
+    (as the authors' tracer turns its normals)."""
+    from method.shading.envmap import cosine_weights, texel_moments
+    from method.shading.render import quadrature_sub
+    from method.splat.splats import quat_to_rotmat
+
+    with torch.no_grad():
+        n = quat_to_rotmat(d.quats.detach())[:, :, 2]
+        to_cam = camera_center.to(n) - d.means.detach()
+        n = torch.where((n * to_cam).sum(-1, keepdim=True) < 0, -n, n)
+        albedo = srgb_to_linear(mats.albedo_display().detach().to(n)).clamp(s2["albedo_min"], s2["albedo_max"])
+        scales = albedo_scales if albedo_scales is not None else [None] * len(envs)
+        if len(scales) != len(envs):
+            raise ValueError(f"{len(envs)} maps but {len(scales)} albedo scales")
+        weights: dict = {}  # the cosine weights depend on the normals and the map's size only
+        out = []
+        for env, scale in zip(envs, scales):
+            hw = (int(env.shape[0]), int(env.shape[1]))
+            if hw not in weights:
+                weights[hw] = cosine_weights(n, texel_moments(*hw, quadrature_sub(hw[0]), device=n.device,
+                                                              dtype=n.dtype))
+            irradiance = weights[hw] @ env.to(n).reshape(-1, 3)
+            a = albedo if scale is None else scaled_albedo(albedo, scale)
+            out.append(a / torch.pi * irradiance)
+        return torch.cat(out, 1)
 
 
 def surface_points(out: RasterOutput, camera: Camera, pix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -158,7 +210,9 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
     """Full-image maps of one view: NVS colour, albedo (linear), roughness, normal, alpha, P, and the
     relit linear RGB under each env map of ``envs`` (visibility traced; indirect light off by default,
     since the stage-1 colours carry the training light); with ``albedo_scale`` (3,) also ``relit_scaled:``
-    each map, shaded with the albedo scaled per channel (the same directions and traversals)."""
+    each map, shaded with the albedo scaled per channel (the same directions and traversals). Without
+    ``indirect``, ``stage2.relight_indirect`` traces indirect light from the Gaussians relit under each map
+    (:func:`relit_radiance`; with ``albedo_scale``, the scaled pass's bounce light scaled too)."""
     s2 = cfg["stage2"]
     d = scene.deform(t, p_mode="inference")
     out = test_time_raster(d, mats, camera, background, s2)
@@ -176,26 +230,44 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
         # and the traversals serve every map (shade_maps); maps of different sizes (a 128 x 64 light beside
         # 32 x 16 ones) share one proposal on the finest grid, and where their sizes do not divide it each
         # map samples itself and the traversals are traced again
-        mixture = sampling_mixture([e.to(a) for e in envs.values()]) if len(envs) > 1 else None
-        tracer = tracer_for(d, acc, s2["trace_offset"] * scene.extent, indirect, extent=scene.extent)
+        env_list = [e.to(a) for e in envs.values()]
+        mixture = sampling_mixture(env_list) if len(envs) > 1 else None
+        relit = not indirect and relight_indirect(s2)
+        # with relit bounce light the scaled pass has its own (the hit Gaussians' albedo scaled too): each map
+        # is shaded twice from the same directions and traversals, its second copy lit by the scaled bounce
+        copies = 2 if (relit and albedo_scale is not None) else 1
+        radiance = None
+        if relit:
+            radiance = relit_radiance(d, mats, env_list * copies, camera.center, s2,
+                                      [None] * len(env_list) + [albedo_scale] * (copies - 1) * len(env_list))
+        tracer = tracer_for(d, acc, s2["trace_offset"] * scene.extent, indirect, extent=scene.extent,
+                            radiance=radiance)
         pts, n, view, albedo, rough = pixel_inputs(out, camera, fg, s2, tracer)
-        ind = tracer.indirect if tracer.use_indirect else None
-        kw = dict(visibility=tracer.visibility, indirect=ind, env_quadrature=bool(s2["env_quadrature"]))
+        kw = dict(visibility=tracer.visibility, env_quadrature=bool(s2["env_quadrature"]))
         if mixture is not None or len(envs) == 1:  # one set of directions and traversals serves every map
-            maps = shade_maps(pts.detach(), n, view, albedo, rough, [e.to(a) for e in envs.values()], n_dirs,
-                              generator, sampling_env=mixture, **kw)
+            maps = shade_maps(pts.detach(), n, view, albedo, rough, env_list * copies, n_dirs, generator,
+                              sampling_env=mixture if (mixture is not None or copies == 1) else env_list[0],
+                              indirect=tracer.indirect if tracer.use_indirect else None, **kw)
         else:  # no shared proposal: each map samples itself, from the same generator state
             start = generator.get_state()
-            maps = []
-            for env in envs.values():
+            per_env = []
+            for i, env in enumerate(env_list):
                 generator.set_state(start)
-                maps += shade_maps(pts.detach(), n, view, albedo, rough, [env.to(a)], n_dirs, generator, **kw)
+                ind = None
+                if tracer.use_indirect:
+                    cols = [i + k * len(env_list) for k in range(copies)] if relit else None
+                    ind = _channels(tracer.indirect, cols)
+                per_env.append(shade_maps(pts.detach(), n, view, albedo, rough, [env] * copies, n_dirs, generator,
+                                          sampling_env=env if copies > 1 else None, indirect=ind, **kw))
+            maps = [m[0] for m in per_env] + ([m[1] for m in per_env] if copies > 1 else [])
         # the scaled albedo shades with the same irradiance: diffuse albedo' / pi x E, the specular part as it is
+        # (with relit bounce light, the irradiance of the map's second copy, lit by the scaled bounce)
         scaled = None if albedo_scale is None else scaled_albedo(albedo, albedo_scale)
-        for name, m in zip(envs, maps):
+        for i, (name, m) in enumerate(zip(envs, maps)):
             passes = [("relit", m["rgb"])]
             if scaled is not None:
-                passes.append(("relit_scaled", scaled / torch.pi * m["irradiance"] + m["specular"]))
+                ms = maps[len(env_list) + i] if copies > 1 else m
+                passes.append(("relit_scaled", scaled / torch.pi * ms["irradiance"] + ms["specular"]))
             for tag, rgb in passes:
                 img = torch.zeros(H * W, 3, dtype=rgb.dtype, device=rgb.device)
                 img[fg] = rgb

@@ -96,7 +96,8 @@ def shade_maps(points: torch.Tensor | None, normals: torch.Tensor, view_dirs: to
                sampling_env: torch.Tensor | None = None, env_quadrature: bool = False) -> list[dict]:
     """:func:`shade` under several maps with one set of directions: per map a dict of "rgb", "diffuse",
     "specular" and "irradiance" (P, 3), each equal to what shade() returns for that map alone with the same
-    generator state and ``sampling_env``. Why: relighting a view under several maps (the benchmark's
+    generator state and ``sampling_env``; ``indirect`` may return 3 channels per map (the Gaussians relit under
+    each, in the maps' order) or 3 for all. Why: relighting a view under several maps (the benchmark's
     predictions) samples the directions, evaluates the BRDF and traces the visibility once instead of once
     per map. Several maps need a shared proposal (``sampling_env``, e.g. deferred.sampling_mixture)."""
     envmaps = list(envmaps)
@@ -194,7 +195,7 @@ def _shade_chunk(points, normals, view_dirs, albedo, rough, envmaps, sampler, co
     for e, mom, irradiance in zip(envmaps, moments, unshadowed):
         h_env, w_env = e.shape[0], e.shape[1]
         env_l = e.reshape(h_env * w_env, -1)[texels[(h_env, w_env)]]
-        radiance = _incident(env_l, blocked)
+        radiance = _incident(env_l, blocked, len(out), len(envmaps))
         if mom is None:
             irr = (dw[..., None] * radiance).sum(1)
         else:  # exact unshadowed irradiance + the sampled change that shadowing makes (zero where V = 1)
@@ -253,13 +254,20 @@ def _blocked(points, dirs, live, visibility, indirect):
     return idx, V, (indirect(o, d) if indirect is not None else None)
 
 
-def _incident(env, blocked):
-    """L_i (P, S, 3) from env(l) (P, S, 3): env(l), or V env + (1 - V) indirect on the live directions."""
+def _incident(env, blocked, map_index: int = 0, num_maps: int = 1):
+    """L_i (P, S, 3) from env(l) (P, S, 3): env(l), or V env + (1 - V) indirect on the live directions. An
+    indirect radiance of 3 x ``num_maps`` channels holds one per map (the blocking Gaussians relit under each,
+    deferred.relit_radiance): map ``map_index`` takes its three."""
     if blocked is None:
         return env
     idx, V, ind = blocked
     L = env.reshape(-1, 3).index_select(0, idx) * V
     if ind is not None:
+        if ind.shape[1] == 3 * num_maps and num_maps > 1:
+            ind = ind[:, 3 * map_index:3 * map_index + 3]
+        elif ind.shape[1] != 3:
+            raise ValueError(f"indirect radiance must have 3 or 3 x {num_maps} (one per map) channels, "
+                             f"got {ind.shape[1]}")
         L = L + (1.0 - V) * ind
     full = env.new_zeros(env.shape[0] * env.shape[1], 3).index_copy(0, idx, L.to(env.dtype))
     return full.reshape(env.shape)

@@ -31,7 +31,8 @@ class GaussianTracer:
 
     means (N, 3), quats (N, 4), scales (N, 2), opacities (N,) as for the rasterizer, at the frame's time;
     gradients flow to the opacities and colours, not to the geometry. ``colours_srgb`` (N, 3) in [0, 1] or
-    None (visibility only). ``offset``: ray start offset in scene units; ``extent``: the scene's size, which
+    None (visibility only); or ``radiance`` (N, 3k) linear, what each Gaussian sends out (relighting: the
+    Gaussians relit under k maps, deferred.relit_radiance). ``offset``: ray start offset in scene units; ``extent``: the scene's size, which
     the caller's normal lift scales with (both default from the splat centres' largest extent: 0.02 x it
     for the offset). ``accel``: a grid from ``build_accel`` over these splats, reused while the geometry is
     fixed. ``replay``: rays of a second pass that repeat an earlier pass's rays in the same order (one view
@@ -39,10 +40,13 @@ class GaussianTracer:
     """
 
     def __init__(self, means, quats, scales, opacities, colours_srgb=None, *, offset: float | None = None,
-                 extent: float | None = None, accel: TraceAccel | None = None, replay: bool = False):
+                 extent: float | None = None, accel: TraceAccel | None = None, replay: bool = False,
+                 radiance: torch.Tensor | None = None):
         self.means, self.quats, self.scales = means.detach(), quats.detach(), scales.detach()
         self.opacities = opacities
-        self.colours_linear = None if colours_srgb is None else srgb_to_linear(colours_srgb.clamp(0, 1))
+        if colours_srgb is not None and radiance is not None:
+            raise ValueError("give the Gaussians' colours_srgb or their radiance, not both")
+        self.colours_linear = radiance if colours_srgb is None else srgb_to_linear(colours_srgb.clamp(0, 1))
         if extent is None or offset is None:
             with torch.no_grad():
                 ext = (means.max(0).values - means.min(0).values).max() if means.shape[0] else means.new_tensor(1.0)
