@@ -112,9 +112,9 @@ def test_shade_maps_gives_each_map_its_own_bounce_light():
         for k in ("rgb", "irradiance", "specular"):
             torch.testing.assert_close(both[i][k], alone[k], rtol=1e-12, atol=1e-12)
     # the two bounces differ, so a map shaded with the other's group would show it
-    assert float((both[1]["irradiance"] - shade_maps(
-        pts, normals, view, albedo, rough, [maps[1]], 64, torch.Generator().manual_seed(9), visibility,
-        lambda o, dirs: bounce(o, dirs)[:, 0:3], sampling_env=mix, env_quadrature=True)[0]["irradiance"]).abs().max()) > 0.1
+    wrong = shade_maps(pts, normals, view, albedo, rough, [maps[1]], 64, torch.Generator().manual_seed(9), visibility,
+                       lambda o, dirs: bounce(o, dirs)[:, 0:3], sampling_env=mix, env_quadrature=True)[0]
+    assert float((both[1]["irradiance"] - wrong["irradiance"]).abs().max()) > 0.1
     with pytest.raises(ValueError, match="3 x 2"):
         shade_maps(pts, normals, view, albedo, rough, maps, 64, torch.Generator().manual_seed(9), visibility,
                    lambda o, dirs: bounce(o, dirs)[:, :4], sampling_env=mix)
@@ -165,3 +165,29 @@ def test_relighting_traces_the_relit_bounce_and_the_scaled_pass_is_a_model_with_
                               albedo_scale=scale)
     torch.testing.assert_close(old["relit:sun"], off, rtol=0, atol=0)
     assert math.isfinite(float(on.sum()))
+
+
+def test_maps_without_a_shared_proposal_each_get_their_own_bounce():
+    """Maps whose sizes share no grid (16 x 32 and 12 x 24) are shaded one by one (render_pbr_view's second
+    branch), each with its own channel groups of the tracer: every map's relit and scaled images equal those
+    of relighting under that map alone."""
+    from tests.test_stage2_gradients import _setup
+    from method.shading.deferred import render_pbr_view
+
+    s = _setup()
+    v = s.view
+    g = torch.Generator().manual_seed(5)
+    envs = {"a": _upper_half_map((0.4, 0.5, 0.7)) + 0.0,
+            "b": 0.2 + torch.rand(12, 24, 3, generator=g, dtype=torch.float64)}
+    envs["a"][2:4, 5:7] = torch.tensor([30.0, 28.0, 25.0], dtype=torch.float64)
+    envs["b"][1, 3] = torch.tensor([5.0, 40.0, 9.0], dtype=torch.float64)  # a green sun elsewhere: another bounce
+    scale = torch.tensor([1.4, 1.1, 1.2], dtype=torch.float64)
+    cfg = {**s.cfg, "stage2": {**s.cfg["stage2"], "relight_indirect": True, "normal_filter": 0.0}}
+    with torch.no_grad():
+        both = render_pbr_view(s.scene, s.mats, v.camera, v.time, s.bg, cfg, envs, 64,
+                               torch.Generator().manual_seed(0), albedo_scale=scale)
+        for name, env in envs.items():
+            alone = render_pbr_view(s.scene, s.mats, v.camera, v.time, s.bg, cfg, {name: env}, 64,
+                                    torch.Generator().manual_seed(0), albedo_scale=scale)
+            for tag in ("relit", "relit_scaled"):
+                torch.testing.assert_close(both[f"{tag}:{name}"], alone[f"{tag}:{name}"], rtol=1e-10, atol=1e-10)

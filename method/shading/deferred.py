@@ -246,7 +246,7 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
         kw = dict(visibility=tracer.visibility, env_quadrature=bool(s2["env_quadrature"]))
         if mixture is not None or len(envs) == 1:  # one set of directions and traversals serves every map
             maps = shade_maps(pts.detach(), n, view, albedo, rough, env_list * copies, n_dirs, generator,
-                              sampling_env=mixture if (mixture is not None or copies == 1) else env_list[0],
+                              sampling_env=mixture if mixture is not None else env_list[0],
                               indirect=tracer.indirect if tracer.use_indirect else None, **kw)
         else:  # no shared proposal: each map samples itself, from the same generator state
             start = generator.get_state()
@@ -258,7 +258,7 @@ def render_pbr_view(scene: DynamicScene, mats: Materials, camera: Camera, t: flo
                     cols = [i + k * len(env_list) for k in range(copies)] if relit else None
                     ind = _channels(tracer.indirect, cols)
                 per_env.append(shade_maps(pts.detach(), n, view, albedo, rough, [env] * copies, n_dirs, generator,
-                                          sampling_env=env if copies > 1 else None, indirect=ind, **kw))
+                                          sampling_env=env, indirect=ind, **kw))
             maps = [m[0] for m in per_env] + ([m[1] for m in per_env] if copies > 1 else [])
         # the scaled albedo shades with the same irradiance: diffuse albedo' / pi x E, the specular part as it is
         # (with relit bounce light, the irradiance of the map's second copy, lit by the scaled bounce)

@@ -32,10 +32,10 @@ class GaussianTracer:
     means (N, 3), quats (N, 4), scales (N, 2), opacities (N,) as for the rasterizer, at the frame's time;
     gradients flow to the opacities and colours, not to the geometry. ``colours_srgb`` (N, 3) in [0, 1] or
     None (visibility only); or ``radiance`` (N, 3k) linear, what each Gaussian sends out (relighting: the
-    Gaussians relit under k maps, deferred.relit_radiance). ``offset``: ray start offset in scene units; ``extent``: the scene's size, which
-    the caller's normal lift scales with (both default from the splat centres' largest extent: 0.02 x it
-    for the offset). ``accel``: a grid from ``build_accel`` over these splats, reused while the geometry is
-    fixed. ``replay``: rays of a second pass that repeat an earlier pass's rays in the same order (one view
+    Gaussians relit under k maps, deferred.relit_radiance). ``offset``: ray start offset in scene units;
+    ``extent``: the scene's size, which the caller's normal lift scales with (both default from the splat
+    centres' largest extent: 0.02 x it for the offset). ``accel``: a grid from ``build_accel`` over these
+    splats, reused while the geometry is fixed. ``replay``: rays of a second pass that repeat an earlier pass's rays in the same order (one view
     relit under several maps with the same directions) reuse its traversals (call ``rewind`` between passes).
     """
 
