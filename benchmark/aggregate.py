@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -74,6 +74,25 @@ def training_seconds(result: dict[str, Any]) -> float | None:
     """Total of the per-stage timings a method reported (None when it reported none)."""
     timings = result.get("timings")
     return float(sum(timings.values())) if timings else None
+
+
+def training_cpu_seconds(result: dict[str, Any]) -> float | None:
+    """Total CPU seconds (all threads) of the stages a method reported, when it reported them for every
+    timed stage (None otherwise: older results and external methods report wall time only)."""
+    wall, cpu = result.get("timings"), result.get("cpu_timings")
+    if not wall or not cpu or set(cpu) != set(wall):
+        return None
+    return float(sum(cpu.values()))
+
+
+def training_clock(results: Sequence[dict[str, Any]]) -> tuple[Callable[[dict[str, Any]], float | None], str]:
+    """How to time the successful runs of ``results`` alike: (CPU seconds, "CPU") when every one that reports a
+    wall time also reports its CPU seconds, else (wall seconds, "wall"). CPU seconds do not grow with the
+    load of a shared machine; a chart or table never mixes the two clocks."""
+    timed = [r for r in results if r.get("status") == "ok" and training_seconds(r) is not None]
+    if timed and all(training_cpu_seconds(r) is not None for r in timed):
+        return training_cpu_seconds, "CPU"
+    return training_seconds, "wall"
 
 
 def gaussian_count(result: dict[str, Any]) -> float | None:

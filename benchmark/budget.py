@@ -18,7 +18,7 @@ import numpy as np
 
 from lumibench.io import atomic_write_text
 
-from .aggregate import gaussian_count, metric_value, training_seconds
+from .aggregate import gaussian_count, metric_value, training_clock
 
 TOLERANCE_DB = 0.3  # issue 26: "the smallest model within 0.3 dB of the largest" (relight PSNR)
 KEY = "relight.psnr"  # the quality the recommendation ranks by (higher is better)
@@ -64,7 +64,7 @@ def smallest_within(variants: dict[str, dict], tolerance: float = TOLERANCE_DB) 
 def compare(results: Sequence[dict]) -> list[dict]:
     """One entry per (method family, configuration) with at least two budget variants: {family,
     configuration, scenes (those every variant ran), left_out (scenes some variant lacks), variants: {name:
-    {runs, seconds, gaussians, metrics: {key: mean}, per_scene: {scene: relight PSNR}}} fastest first, front (names, fastest
+    {runs, seconds (CPU seconds when every run reports them, else wall: ``clock`` says which), gaussians, metrics: {key: mean}, per_scene: {scene: relight PSNR}}} fastest first, front (names, fastest
     first), size: (largest, smallest within the tolerance) or None}."""
     ok = [r for r in results if r["status"] == "ok" and is_budget_variant(r["method"])]
     out = []
@@ -80,6 +80,7 @@ def compare(results: Sequence[dict]) -> list[dict]:
             if not common:
                 continue
             variants = {}
+            seconds, clock = training_clock([r for r in runs if r["scene"] in common])
             for n in names:
                 rs = [r for r in runs if r["method"] == n and r["scene"] in common]
 
@@ -88,14 +89,14 @@ def compare(results: Sequence[dict]) -> list[dict]:
 
                 variants[n] = {
                     "runs": len(rs),
-                    "seconds": over_scenes(training_seconds),
+                    "seconds": over_scenes(seconds),
                     "gaussians": over_scenes(gaussian_count),
                     "metrics": {k: over_scenes(lambda r, k=k: metric_value(r, k)) for k, _, _ in COLUMNS},
                     "per_scene": {s: _mean([metric_value(r, KEY) for r in rs if r["scene"] == s]) for s in common},
                 }
             variants = dict(sorted(variants.items(), key=lambda kv: (kv[1]["seconds"] is None, kv[1]["seconds"] or 0.0)))
             front = pareto_variants({n: (v["seconds"], v["metrics"][KEY]) for n, v in variants.items()})
-            out.append({"family": fam, "configuration": conf, "scenes": common, "left_out": left_out,
+            out.append({"family": fam, "configuration": conf, "clock": clock, "scenes": common, "left_out": left_out,
                         "variants": variants, "front": front, "size": smallest_within(variants)})
     return out
 
@@ -113,7 +114,8 @@ def _time(seconds: float | None) -> str:
 def markdown(comparisons: Sequence[dict], protocol: str | None = None) -> str:
     lines = ["# Speed against accuracy: budget variants", "",
              f"Protocol: {protocol or '?'}. Each variant's mean over the scenes every variant ran (of each scene's mean over its seeds); "
-             f"training time is the sum of the reported stages. On the front: no other variant is at most as slow "
+             f"training time is the sum of the reported stages, in CPU seconds (all threads) where every run "
+             f"reports them, which a loaded machine does not inflate, else in wall seconds. On the front: no other variant is at most as slow "
              f"and at least as good in relight PSNR. At a time budget T, run the front's last variant whose time is "
              f"at most T. Model size: the smallest model whose relight PSNR is within {TOLERANCE_DB} dB of the "
              f"largest model's."]
@@ -122,7 +124,7 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None) -> str:
         lines += ["", f"## {c['family']}, {train} → {test}", "",
                   f"Scenes: {', '.join(c['scenes'])}" + (f" (left out, not run by every variant: "
                                                          f"{', '.join(c['left_out'])})" if c["left_out"] else "") + ".",
-                  "", "| variant | runs | training time | Gaussians | " + " | ".join(label for _, label, _ in COLUMNS)
+                  "", f"| variant | runs | training time ({c['clock']}) | Gaussians | " + " | ".join(label for _, label, _ in COLUMNS)
                   + " | " + " | ".join(f"{s} relight PSNR" for s in c["scenes"]) + " | on the front |",
                   "|:--|--:|--:|--:|" + "--:|" * (len(COLUMNS) + len(c["scenes"])) + ":-:|"]
         for n, v in c["variants"].items():

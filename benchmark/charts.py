@@ -24,7 +24,7 @@ import numpy as np
 
 from lumibench.io import atomic_path
 
-from .aggregate import gaussian_count, is_not_run, metric_value, training_seconds
+from .aggregate import gaussian_count, is_not_run, metric_value, training_clock
 
 QUALITY = (("relight.psnr", "relight PSNR (dB) ↑", True), ("albedo.lpips", "albedo LPIPS ↓", False))
 # the cause method/train.py's TrainingDiverged gives ("stage 1 stopped: non-finite loss at iteration 37; ...")
@@ -324,7 +324,8 @@ def _draw_failures(ax, marks: Sequence[dict], methods: Sequence[str]) -> None:
 
 
 def pareto_chart(results: Sequence[dict], path: Path) -> Path:
-    return _quality_vs(results, training_seconds, "training time (s, sum of reported stages)",
+    seconds, clock = training_clock(results)
+    return _quality_vs(results, seconds, f"training time (s, {clock} clock, sum of reported stages)",
                        "Quality vs training time (large markers: mean per method)", path, front=True)
 
 

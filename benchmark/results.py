@@ -23,7 +23,8 @@ malformed file is refused with a message naming the file and the field rather th
                  "normal": {mae_deg} | null,
                  "nvs_moving": {foreground_psnr, moving_psnr, gap_db, moving_pixels} | null},
      "per_image": {"<task>": {"r_NNNN": {metric: value}}},
-     "timings": {"<stage>": seconds} | null, "iterations_per_s", "peak_memory_bytes", "device",
+     "timings": {"<stage>": seconds} | null (wall clock),
+     "cpu_timings": {"<stage>": CPU seconds, all threads} | null (absent in older results), "iterations_per_s", "peak_memory_bytes", "device",
      "model_size": {"gaussians", "parameters", "bytes"} | null, "created": ISO-8601 UTC,
      "diagnose" (optional, methods that run the relight diagnostic of method/diagnose.py):
          {"views": int, "dirs": int, "protocol": str, "steps": {"<step>": {"psnr", "lpips"}}}}
@@ -133,7 +134,7 @@ def validate(obj: Any, source: str = "<result>") -> dict[str, Any]:
         raise _fail(source, "metric_config.lpips_weights.sha256", "must record the LPIPS weights' sha256")
     if not isinstance(obj.get("per_image"), dict):
         raise _fail(source, "per_image", "must be an object of per-view values")
-    for key in ("timings", "model_size"):
+    for key in ("timings", "cpu_timings", "model_size"):
         value = obj.get(key)
         if value is not None and not (isinstance(value, dict) and all(_number(v) for v in value.values())):
             raise _fail(source, key, "must be null or an object of numbers")

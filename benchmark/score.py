@@ -241,6 +241,7 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
         "metrics": result_metrics,
         "per_image": {k: v for k, v in per_image.items() if v},
         "timings": _numbers(meta.get("timings")),
+        "cpu_timings": _numbers(meta.get("cpu_timings")),
         "iterations_per_s": meta.get("iterations_per_s"),
         "peak_memory_bytes": meta.get("peak_memory_bytes"),
         "device": meta.get("device"),

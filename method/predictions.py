@@ -84,11 +84,13 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
     if env_est is not None:
         (pred / "envmap").mkdir(parents=True, exist_ok=True)
         write_hdr(pred / "envmap" / f"{light}.hdr", env_est.cpu().numpy())
-    timings = {}
+    timings, cpu_timings = {}, {}
     tpath = run_dir / "timings.json"
     if tpath.is_file():
         t = json.loads(tpath.read_text())
-        timings = {k: t[k]["seconds"] for k in ("stage1", "stage2") if isinstance(t.get(k), dict)}
+        stages = {k: t[k] for k in ("stage1", "stage2") if isinstance(t.get(k), dict)}
+        timings = {k: rec["seconds"] for k, rec in stages.items()}
+        cpu_timings = {k: c for k, rec in stages.items() if (c := stage_cpu_seconds(rec)) is not None}
     if not scene.static and not _has_every_p_map(pred, train_scene_dir):
         # every training view's P (the benchmark's separation score), also the frames a run that keeps a
         # share of them (data.train_frames) did not train on: stage 1 wrote only those it trained on
@@ -96,10 +98,24 @@ def write_predictions(run_dir: Path, scene_dir: Path, light: str, cfg: dict, *, 
     n_params = scene.num_parameters() + (0 if albedo_from_colour else mats.num_parameters())
     write_meta(pred, {"method": method, "version": VERSION, "seed": int(seed), "device": device_name(dev),
                       "scene": scene_dir.name, "train_light": light, "timings": timings,
+                      **({"cpu_timings": cpu_timings} if cpu_timings else {}),
                       "model_size": {"gaussians": len(scene.g), "parameters": int(n_params)},
                       **({"settings_sha256": h} if (h := run_record.settings_hash(run_dir)) else {}),
                       **({"relight_albedo_scale": [float(c) for c in scale]} if scale is not None else {})})
     return pred
+
+
+def stage_cpu_seconds(rec: dict) -> float | None:
+    """A stage's CPU seconds (all threads) from its timings.json entry: ``cpu_seconds`` (over every session it
+    ran in); in runs from before that was kept, ``cpu_seconds_this_session`` when the stage ran in one
+    session, plus stage 2's environment fit (its wall seconds stand in: the fit ran before the count began);
+    None when unknown (a stage resumed before the total was kept)."""
+    if isinstance(rec.get("cpu_seconds"), (int, float)):
+        return float(rec["cpu_seconds"])
+    session = rec.get("cpu_seconds_this_session")
+    if not isinstance(session, (int, float)) or rec.get("breakdown_iterations") != rec.get("iterations"):
+        return None
+    return float(session) + float(rec.get("env_fit_seconds", 0.0))
 
 
 def _has_every_p_map(pred: Path, train_scene_dir: Path) -> bool:

@@ -362,7 +362,7 @@ class Stage1:
         self.nopt: torch.optim.Optimizer | None = None
         self.bopt: torch.optim.Optimizer | None = None  # the motion bases' (model.motion_bases), from the split on
         self.stats: DensityStats | None = None
-        self.prior_seconds = 0.0
+        self.prior_seconds = self.prior_cpu_seconds = 0.0
         self.view_times = [float(v.time) for v in data.train]
         self.train_times = sorted(set(self.view_times))
         self._coarse: dict = {}  # (view, factor) -> the downsampled view of the coarse-to-fine schedule

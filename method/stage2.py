@@ -154,7 +154,7 @@ class Stage2:
         self.scene: DynamicScene | None = None
         self.mats: Materials | None = None
         self.opt: torch.optim.Optimizer | None = None
-        self.prior_seconds = 0.0
+        self.prior_seconds = self.prior_cpu_seconds = 0.0
         self.env_fit_record: dict | None = None
         self.accel_cache: dict = {}
         self.trunk_cache: dict | None = None
@@ -178,6 +178,7 @@ class Stage2:
             env0, self.env_fit_record = fit_env(self.scene, self.mats, self.data, self.cfg, gen)
             self.mats.env = LearnableEnvMap(s2["env_height"], s2["env_width"], env0).to(self.device)
             self.prior_seconds = self.env_fit_record["seconds"]  # stage 2's seconds include the fit
+            self.prior_cpu_seconds = self.env_fit_record["cpu_seconds"]
             log({"iteration": 0, "env_fit": self.env_fit_record})
         self._ready(self.scene.g.t["opacity_logit"].detach().clone())
 

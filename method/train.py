@@ -7,7 +7,8 @@ the loop runs the steps and owns everything around them. Run directory
     config.yaml            the resolved configuration and the run's identity (method/run_record.py)
     checkpoints/stage<k>_<iteration>.pt   every stage<k>.checkpoint_every and at the end; the last two kept
     log_stage<k>.jsonl     one line per stage<k>.log_every iterations (loss terms, PSNR, Gaussian count)
-    timings.json           seconds, iterations/s, peak memory, device, threads (kernels, torch), where the time went
+    timings.json           seconds (wall) and cpu_seconds (all threads, over every session the stage ran in),
+                           iterations/s, peak memory, device, threads (kernels, torch), where the time went
     metrics_stage<k>.json  what the finished stage reports (method/stage1.py, method/stage2.py)
     renders/, predictions/ the stages' outputs
     failure.json           written when training stops on a non-finite value (the benchmark shows it)
@@ -133,13 +134,14 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
             with open(log_path, "a") as fh:
                 fh.write(json.dumps(rec) + "\n")
 
-        total, start_it, prior = s["iterations"], 0, 0.0
+        total, start_it, prior, prior_cpu = s["iterations"], 0, 0.0, 0.0
         if existing:
             run_record.check_settings(run_dir, cfg, k, f"resuming {what}")
             ck = latest_checkpoint(run_dir, k, dev)
             stage.resume(ck)
             gen.set_state(ck["rng"])
             start_it, prior = int(ck["iteration"]), float(ck.get("seconds", 0.0))
+            prior_cpu = ck.get("cpu_seconds")  # absent in checkpoints from before it was kept: then unknown
             total = int(ck.get("total_iterations", total))
             run_record.truncate_log(log_path, start_it)
         else:
@@ -150,11 +152,15 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
                 run_record.record_stage2(run_dir, cfg)
             log_path.unlink(missing_ok=True)
             stage.start(gen, log)
-            prior = stage.prior_seconds
+            prior, prior_cpu = stage.prior_seconds, stage.prior_cpu_seconds
         (run_dir / "failure.json").unlink(missing_ok=True)
 
         timer = Timer(dev)
         t0, c0 = time.perf_counter(), time.process_time()
+
+        def cpu_total() -> float | None:  # the stage's CPU seconds (all threads) over every session it ran in
+            return None if prior_cpu is None else float(prior_cpu) + time.process_time() - c0
+
         ema = None
         from lumibench.progress import make_progress
 
@@ -173,11 +179,12 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
                 if it % s["checkpoint_every"] == 0 or it == total:
                     save_checkpoint(run_dir, k, it, {
                         "iteration": it, "total_iterations": total, "rng": gen.get_state(),
-                        "seconds": prior + time.perf_counter() - t0, **stage.state()})
+                        "seconds": prior + time.perf_counter() - t0, "cpu_seconds": cpu_total(), **stage.state()})
         seconds = prior + time.perf_counter() - t0
         run_record.merge_json(run_dir / "timings.json", {
             f"stage{k}": {"seconds": seconds, "iterations": total, "iterations_per_s": total / max(seconds, 1e-9),
                           "cpu_seconds_this_session": time.process_time() - c0,
+                          **({} if (cpu := cpu_total()) is None else {"cpu_seconds": cpu}),
                           "breakdown_s": {n: round(v, 4) for n, v in timer.sums.items()},
                           "breakdown_iterations": total - start_it, **stage.timing_fields()},
             "device": device_name(dev), "device_type": dev.type, "threads": kernel_threads,

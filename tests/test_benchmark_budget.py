@@ -74,3 +74,30 @@ def test_budget_md_is_written_by_build_outputs_only_when_variants_ran(tmp_path):
     assert "frames" not in text and "static" not in text
     plain = build_outputs(paths[-1:], tmp_path / "plain", grids=False, published=False)
     assert "budget.md" not in plain and not (tmp_path / "plain" / "budget.md").exists()
+
+
+def test_budget_times_are_cpu_seconds_only_when_every_run_reports_them(tmp_path):
+    """A loaded machine stretches wall time, not CPU time: the comparison reads the CPU seconds when every run
+    has them, and never mixes the two clocks (one run without them puts the whole comparison on the wall)."""
+    rs = _results()
+    for r in rs:
+        if r["status"] == "ok":  # the CPU took 60 % of the wall time on every run
+            r["cpu_timings"] = {k: 0.6 * v for k, v in r["timings"].items()}
+    (c,) = budget.compare(rs)
+    assert c["clock"] == "CPU"
+    assert c["variants"]["lumimotion@0.5"]["seconds"] == pytest.approx(0.6 * 55.0)
+    paths = []
+    for i, r in enumerate(rs):
+        write_result(tmp_path / "runs" / f"{i}.json", r)
+        paths.append(tmp_path / "runs" / f"{i}.json")
+    text = build_outputs(paths, tmp_path / "out", grids=False, published=False)["budget.md"].read_text()
+    assert "| training time (CPU) |" in text and "- from 15 s (under 33 s): **lumimotion@0.25**" in text
+    del next(r for r in rs if r["method"] == "lumimotion@cap5000")["cpu_timings"]
+    (c,) = budget.compare(rs)
+    assert c["clock"] == "wall" and c["variants"]["lumimotion@0.5"]["seconds"] == pytest.approx(55.0)
+    # a run whose CPU seconds cover only some of its stages has none
+    r = rs[0]
+    r["cpu_timings"] = {"stage1": 1.0}
+    from benchmark.aggregate import training_cpu_seconds
+
+    assert training_cpu_seconds(r) is None

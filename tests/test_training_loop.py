@@ -69,6 +69,21 @@ def test_stage2_resume_equals_an_uninterrupted_run(ci_dataset, stage1_run, tmp_p
     # the resumed log holds each iteration once, in order
     its = [json.loads(x)["iteration"] for x in (part / "log_stage2.jsonl").read_text().splitlines()]
     assert its == sorted(set(its)) and its[-1] == 8
+    # the CPU seconds are the stage's over both sessions (the fit and iterations 1-4 came from the checkpoint)
+    t = json.loads((part / "timings.json").read_text())["stage2"]
+    assert four["cpu_seconds"] > 0 and t["cpu_seconds"] == pytest.approx(four["cpu_seconds"]
+                                                                        + t["cpu_seconds_this_session"], abs=0.05)
+
+
+def test_stage_cpu_seconds_of_runs_from_before_the_total_was_kept():
+    from method.predictions import stage_cpu_seconds
+
+    assert stage_cpu_seconds({"cpu_seconds": 5.0, "cpu_seconds_this_session": 1.0}) == 5.0
+    one = {"iterations": 10, "breakdown_iterations": 10, "cpu_seconds_this_session": 7.0}
+    assert stage_cpu_seconds(one) == 7.0
+    assert stage_cpu_seconds({**one, "env_fit_seconds": 2.0}) == 9.0  # stage 2 counted its fit before the clock
+    assert stage_cpu_seconds({**one, "breakdown_iterations": 6}) is None  # resumed: the first session is lost
+    assert stage_cpu_seconds({"iterations": 10}) is None
 
 
 def test_stage2_refuses_a_run_of_another_scene_light_or_seed(ci_dataset, stage1_run, tmp_path):
