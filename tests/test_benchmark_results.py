@@ -34,6 +34,7 @@ def test_roundtrip_and_finished(tmp_path):
     (lambda r: r["metrics"].update(shadows={"x": 1}), "metrics.shadows"),
     (lambda r: r["metric_config"]["lpips_weights"].pop("sha256"), "metric_config.lpips_weights.sha256"),
     (lambda r: r.update(timings={"stage1": "long"}), "timings"),
+    (lambda r: r.update(cpu_timings={"stage1": None}), "cpu_timings"),
 ])
 def test_malformed_result_names_file_and_field(tmp_path, mutate, field):
     res = copy.deepcopy(fake_result("m"))

@@ -25,6 +25,9 @@ def test_train_writes_both_stages_and_predictions(tiny_run):
     assert t["stage1"]["iterations"] == 12 and t["stage2"]["iterations"] == 6 and t["stage2"]["rays_traced"] > 0
     meta = json.loads((tiny_run / "predictions" / "meta.json").read_text())
     assert meta["method"] == "lumimotion" and set(meta["timings"]) == {"stage1", "stage2"}
+    # CPU seconds of both stages (stage 2's with its environment fit), which a loaded machine does not stretch
+    assert set(meta["cpu_timings"]) == {"stage1", "stage2"} and all(v > 0 for v in meta["cpu_timings"].values())
+    assert meta["cpu_timings"]["stage2"] == t["stage2"]["cpu_seconds"] > t["stage2"]["cpu_seconds_this_session"]
 
 
 def test_relight_test_views_and_orbit(ci_dataset, tiny_run, tmp_path):
