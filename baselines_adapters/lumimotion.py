@@ -197,8 +197,8 @@ class LumiMotionAdapter(MethodAdapter):
 
             shutil.copytree(pred, out_dir, dirs_exist_ok=True)
             (Path(out_dir) / "meta.json").unlink(missing_ok=True)
-        keep = {k: meta[k] for k in ("timings", "cpu_timings", "device", "model_size", "relight_albedo_scale", "settings_sha256")
-                if k in meta}
+        keep = {k: meta[k] for k in ("timings", "cpu_timings", "device", "model_size", "relight_albedo_scale",
+                                     "settings_sha256") if k in meta}
         keep["run_dir"] = str(run_dir)
         if self.variant["stage2"]:  # wo_stage2's albedo is the canonical colour: nothing to take apart
             keep["diagnose"] = {t: diagnose_block(run_dir, Path(scene_dir), t) for t in dict.fromkeys(test_lights)}

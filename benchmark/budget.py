@@ -64,8 +64,9 @@ def smallest_within(variants: dict[str, dict], tolerance: float = TOLERANCE_DB) 
 def compare(results: Sequence[dict]) -> list[dict]:
     """One entry per (method family, configuration) with at least two budget variants: {family,
     configuration, scenes (those every variant ran), left_out (scenes some variant lacks), variants: {name:
-    {runs, seconds (CPU seconds when every run reports them, else wall: ``clock`` says which), gaussians, metrics: {key: mean}, per_scene: {scene: relight PSNR}}} fastest first, front (names, fastest
-    first), size: (largest, smallest within the tolerance) or None}."""
+    {runs, seconds, gaussians, metrics: {key: mean}, per_scene: {scene: relight PSNR}}} fastest first, front
+    (names, fastest first), size: (largest, smallest within the tolerance) or None, clock: "CPU" when the
+    seconds are CPU seconds (every run reports them), else "wall"}."""
     ok = [r for r in results if r["status"] == "ok" and is_budget_variant(r["method"])]
     out = []
     for fam in sorted({family(r["method"]) for r in ok}):
@@ -115,8 +116,9 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None) -> str:
     lines = ["# Speed against accuracy: budget variants", "",
              f"Protocol: {protocol or '?'}. Each variant's mean over the scenes every variant ran (of each scene's mean over its seeds); "
              f"training time is the sum of the reported stages, in CPU seconds (all threads) where every run "
-             f"reports them, which a loaded machine does not inflate, else in wall seconds. On the front: no other variant is at most as slow "
-             f"and at least as good in relight PSNR. At a time budget T, run the front's last variant whose time is "
+             f"reports them, which a loaded machine does not inflate, else in wall seconds. On the front: no "
+             f"other variant is at most as slow and at least as good in relight PSNR. At a time budget T, run the "
+             f"front's last variant whose time is "
              f"at most T. Model size: the smallest model whose relight PSNR is within {TOLERANCE_DB} dB of the "
              f"largest model's."]
     for c in comparisons:
@@ -124,7 +126,8 @@ def markdown(comparisons: Sequence[dict], protocol: str | None = None) -> str:
         lines += ["", f"## {c['family']}, {train} → {test}", "",
                   f"Scenes: {', '.join(c['scenes'])}" + (f" (left out, not run by every variant: "
                                                          f"{', '.join(c['left_out'])})" if c["left_out"] else "") + ".",
-                  "", f"| variant | runs | training time ({c['clock']}) | Gaussians | " + " | ".join(label for _, label, _ in COLUMNS)
+                  "", f"| variant | runs | training time ({c['clock']}) | Gaussians | "
+                  + " | ".join(label for _, label, _ in COLUMNS)
                   + " | " + " | ".join(f"{s} relight PSNR" for s in c["scenes"]) + " | on the front |",
                   "|:--|--:|--:|--:|" + "--:|" * (len(COLUMNS) + len(c["scenes"])) + ":-:|"]
         for n, v in c["variants"].items():

@@ -24,7 +24,8 @@ malformed file is refused with a message naming the file and the field rather th
                  "nvs_moving": {foreground_psnr, moving_psnr, gap_db, moving_pixels} | null},
      "per_image": {"<task>": {"r_NNNN": {metric: value}}},
      "timings": {"<stage>": seconds} | null (wall clock),
-     "cpu_timings": {"<stage>": CPU seconds, all threads} | null (absent in older results), "iterations_per_s", "peak_memory_bytes", "device",
+     "cpu_timings": {"<stage>": CPU seconds, all threads} | null (absent in older results),
+     "iterations_per_s", "peak_memory_bytes", "device",
      "model_size": {"gaussians", "parameters", "bytes"} | null, "created": ISO-8601 UTC,
      "diagnose" (optional, methods that run the relight diagnostic of method/diagnose.py):
          {"views": int, "dirs": int, "protocol": str, "steps": {"<step>": {"psnr", "lpips"}}}}

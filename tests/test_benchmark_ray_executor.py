@@ -3,9 +3,9 @@
 A local two-node Ray cluster (ray.cluster_utils.Cluster: a head without CPUs and two worker nodes with one
 CPU each, all on this machine) runs a floors-only grid; its result files and predictions must equal those
 of the same grid run with the local executor, except for the fields that record when and how fast it ran
-(``created``; ``timings``, ``cpu_timings`` in results and meta.json), and for float32 rounding in the last bits of the scores:
-a Ray worker holding one CPU runs torch on one thread, and on some CPUs (a Xeon with AMX, session 46) the
-LPIPS network's convolutions round differently on one thread than on two (relative 1e-7).
+(``created``; ``timings``, ``cpu_timings`` in results and meta.json), and for float32 rounding in the last bits
+of the scores: a Ray worker holding one CPU runs torch on one thread, and on some CPUs (a Xeon with AMX,
+session 46) the LPIPS network's convolutions round differently on one thread than on two (relative 1e-7).
 """
 from __future__ import annotations
 
