@@ -45,6 +45,8 @@ class MethodAdapter(abc.ABC):
             "cpu_timings": {"predict": time.process_time() - cpu_start},  # this process's threads only
         }
         meta.update(extra)
+        if "timings" in extra and "cpu_timings" not in extra:  # its own stages, timed on the wall clock only
+            del meta["cpu_timings"]
         write_meta(out, meta)
         return out
 

@@ -101,3 +101,26 @@ def test_budget_times_are_cpu_seconds_only_when_every_run_reports_them(tmp_path)
     from benchmark.aggregate import training_cpu_seconds
 
     assert training_cpu_seconds(r) is None
+
+
+def test_an_adapter_that_times_its_own_stages_keeps_no_cpu_seconds_of_another_span(tmp_path):
+    """The base adapter's CPU seconds cover its predict call; a method that reports its own stages' wall
+    times without their CPU seconds must not be left with a CPU record of another span."""
+    import json
+
+    from baselines_adapters.base import MethodAdapter
+
+    class Timed(MethodAdapter):
+        name, version = "timed", "1"
+
+        def __init__(self, extra):
+            self.extra = extra
+
+        def predict(self, *args):
+            return self.extra
+
+    for extra, want in (({}, {"predict"}), ({"timings": {"train": 5.0}}, None),
+                        ({"timings": {"train": 5.0}, "cpu_timings": {"train": 4.0}}, {"train"})):
+        out = Timed(extra).run(tmp_path, "city", ["sunrise"], 0, "ci", tmp_path / f"p{len(extra)}")
+        meta = json.loads((out / "meta.json").read_text())
+        assert (set(meta["cpu_timings"]) if "cpu_timings" in meta else None) == want, extra
