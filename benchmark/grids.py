@@ -1,7 +1,8 @@
 """Image grids: ground truth next to prediction (albedo as scored, roughness, relight; env maps).
 
-Built from a result file alone: it names the scene and predictions folder, and holds the albedo scale,
-so the grid shows exactly what was scored (aligned albedo, GT-alpha masking).
+Built from a result file alone: it names the scene and predictions folder, holds the albedo scale and says
+which relight it scored, so the grid shows exactly what was scored (aligned albedo, the relight shaded with
+it under `lumimotion`, GT-alpha masking).
 """
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from lumibench.errors import UserError
 from lumibench.io import read_image
 
 from .predictions import PredictionFolder, srgb_decode, srgb_encode
-from .score import read_gt, read_lit
+from .score import read_gt, read_lit, scored_relight_kind
 
 MAX_VIEWS = 3
 
@@ -28,23 +29,20 @@ def _tonemap(env: np.ndarray) -> np.ndarray:
     return srgb_encode(x / (1.0 + x))
 
 
-def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -> Path:
-    """Write a GT-vs-prediction grid PNG for one scored run; returns ``path``."""
-    from .charts import _plt, _save
-
-    if result.get("status") != "ok":
-        raise UserError(f"no image grid for a failed run ({result.get('method')} {result.get('scene')})")
+def grid_images(result: dict[str, Any], max_views: int = MAX_VIEWS
+                ) -> tuple[list[tuple[str, str]], list[tuple[str, dict[str, np.ndarray | None]]]]:
+    """The grid's columns (key, title) and, per test view (stem), its panels as arrays in [0, 1] (None where
+    the method did not predict that kind): the albedo aligned as scored, the relight the result scored."""
     scene = Path(result["inputs"]["scene_dir"])
     pred = PredictionFolder(Path(result["inputs"]["pred_dir"]))
     train, test = result["train_light"], result["test_light"]
     scale = np.asarray((result["metrics"].get("albedo") or {}).get("scale", [1, 1, 1]), dtype=np.float32)
-    frames = layout.read_transforms(scene, "test").frames[:max_views]
+    relit = scored_relight_kind(result)  # under `lumimotion`, the relight shaded with the aligned albedo
     cols = [("albedo", "GT albedo"), ("albedo_p", "albedo (aligned)"), ("rough", "GT roughness"),
-            ("rough_p", "roughness"), ("relight", f"GT {test}"), ("relight_p", f"relit {test}")]
-    plt = _plt()
-    fig, axes = plt.subplots(len(frames) + 1, len(cols), figsize=(1.9 * len(cols), 1.95 * (len(frames) + 1)),
-                             squeeze=False)
-    for i, frame in enumerate(frames):
+            ("rough_p", "roughness"), ("relight", f"GT {test}"),
+            ("relight_p", f"relit {test}" + (", albedo aligned" if relit == "relight_scaled" else ""))]
+    views = []
+    for frame in layout.read_transforms(scene, "test").frames[:max_views]:
         fp, stem = frame.file_path, frame.stem
         _, alpha = read_lit(scene, train, fp)
         shape = alpha.shape[:2]
@@ -59,8 +57,26 @@ def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -
             imgs["albedo_p"] = srgb_encode(lin) * alpha
         if pred.has("roughness"):
             imgs["rough_p"] = pred.read("roughness", stem, shape)[..., 0] * alpha[..., 0]
-        if pred.has("relight", test):
-            imgs["relight_p"] = pred.read("relight", stem, shape, test) * alpha
+        if pred.has(relit, test):
+            imgs["relight_p"] = pred.read(relit, stem, shape, test) * alpha
+        views.append((stem, imgs))
+    return cols, views
+
+
+def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -> Path:
+    """Write a GT-vs-prediction grid PNG for one scored run; returns ``path``."""
+    from .charts import _plt, _save
+
+    if result.get("status") != "ok":
+        raise UserError(f"no image grid for a failed run ({result.get('method')} {result.get('scene')})")
+    scene = Path(result["inputs"]["scene_dir"])
+    pred = PredictionFolder(Path(result["inputs"]["pred_dir"]))
+    train, test = result["train_light"], result["test_light"]
+    cols, views = grid_images(result, max_views)
+    plt = _plt()
+    fig, axes = plt.subplots(len(views) + 1, len(cols), figsize=(1.9 * len(cols), 1.95 * (len(views) + 1)),
+                             squeeze=False)
+    for i, (stem, imgs) in enumerate(views):
         for j, (key, title) in enumerate(cols):
             ax = axes[i, j]
             img = imgs[key]
@@ -75,7 +91,7 @@ def image_grid(result: dict[str, Any], path: Path, max_views: int = MAX_VIEWS) -
             ax.set_axis_off()
         axes[i, 0].text(-0.08, 0.5, stem, transform=axes[i, 0].transAxes, rotation=90, va="center", ha="right",
                         fontsize=7)
-    env_row = axes[len(frames)]
+    env_row = axes[len(views)]
     for ax in env_row:
         ax.set_axis_off()
     envs = ((env_row[0], _true_envmap(scene, train), f"true env ({train})"),

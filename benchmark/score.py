@@ -27,6 +27,19 @@ from .results import SCHEMA_VERSION, now_iso, validate
 SSIM_DESCRIPTION = "Gaussian window 11, sigma 1.5, data range 1"
 
 
+
+# which relight a result scored, as written into its metric_config (read back by the image grids)
+RELIGHT_NOTES = {"relight_scaled": "scaled per channel by the albedo alignment before shading (relight_scaled/)",
+                 "relight": "as predicted (relight/)"}
+
+
+def scored_relight_kind(result: dict[str, Any]) -> str:
+    """The predictions folder (``relight`` or ``relight_scaled``) whose images a result's relight scores came
+    from, so a picture of the run shows the images the table scored."""
+    note = (result.get("metric_config") or {}).get("relight_albedo")
+    return next((kind for kind, text in RELIGHT_NOTES.items() if text == note), "relight")
+
+
 def available_lights(scene: Path) -> list[str]:
     """Lights rendered for the test split of a scene (folders holding test/ that are not GT kinds)."""
     return sorted(p.name for p in Path(scene).iterdir()
@@ -231,8 +244,7 @@ def score(scene_dir: str | Path, pred_dir: str | Path, train_light: str, test_li
             "ssim": SSIM_DESCRIPTION,
             "lpips_weights": dict(weights),
             "albedo_alignment": "per-channel median ratio, linear space, foreground of all test views",
-            "relight_albedo": ("scaled per channel by the albedo alignment before shading (relight_scaled/)"
-                               if relight_kind == "relight_scaled" else "as predicted (relight/)"),
+            "relight_albedo": RELIGHT_NOTES[relight_kind],
         },
         "inputs": {"scene_dir": str(scene.resolve()), "pred_dir": str(Path(pred_dir).resolve()),
                    **dataset_inputs(scene), "pred_meta_sha256": predictions_hash(Path(pred_dir)),

@@ -457,6 +457,15 @@ def test_lumimotion_scores_the_relight_made_with_the_scaled_albedo_and_strict_th
     assert "as predicted" in st["metric_config"]["relight_albedo"]
     # delta PSNR follows the relight that was scored
     assert lm["metrics"]["delta_psnr"]["db"] == pytest.approx(lm["metrics"]["nvs"]["psnr"] - lm["metrics"]["relight"]["psnr"])
+    # the image grid shows the relight each protocol scored (session 51: it showed relight/ under both)
+    from benchmark.grids import grid_images
+
+    for res, want in ((lm, scaled), (st, world.relight)):
+        cols, views = grid_images(res)
+        assert dict(cols)["relight_p"].endswith(", albedo aligned") == (res is lm)
+        for v, (stem, imgs) in enumerate(views):
+            a = world.alpha[v][..., None]
+            np.testing.assert_allclose(imgs["relight_p"], want[v] * a, atol=1e-6)
 
 
 def test_nvs_over_the_moving_objects_beside_the_foreground(world):
