@@ -12,11 +12,15 @@ benchmark``; the grid's workers inherit them).
 - ``NUMBA_NUM_THREADS`` from ``OMP_NUM_THREADS``: Numba starts a pool of one thread per core at import, and
   a process that runs its kernels on one thread (a grid worker) still woke the idle one at every parallel
   kernel (~25 % of the main thread's CPU time, 5-7 % of a ci stage 1's).
-A value the user set is kept.
+A value the user set is kept. Numba's count is left alone where Numba is already imported (an entry point's
+``main`` imported into a running process, as the tests and a notebook do): the pool is sized at import, and
+changing the variable afterwards makes Numba's next compilation fail ("Cannot set NUMBA_NUM_THREADS to a
+different value once the threads have been launched"; `OMP_NUM_THREADS=1 make test` failed seven tests so).
 """
 from __future__ import annotations
 
 import os
+import sys
 
 from lumibench.machine import usable_cores
 
@@ -24,6 +28,7 @@ from lumibench.machine import usable_cores
 def configure_threads() -> None:
     omp = os.environ.get("OMP_NUM_THREADS", "").strip()
     if omp.isdigit() and int(omp) >= 1:
-        os.environ.setdefault("NUMBA_NUM_THREADS", omp)
+        if "numba" not in sys.modules:  # too late for Numba's pool, and a change now breaks its compiler
+            os.environ.setdefault("NUMBA_NUM_THREADS", omp)
         if int(omp) < usable_cores():
             os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -151,6 +151,28 @@ def test_entry_points_set_the_thread_environment_before_torch(entry):
     assert run(OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="2", OMP_WAIT_POLICY="ACTIVE")[:2] == ["ACTIVE", "2"]
 
 
+@pytest.mark.parametrize("entry", ["method", "benchmark"])
+def test_entry_point_imported_after_numba_leaves_its_pool_alone(entry):
+    """An entry point's ``main`` imported into a process whose Numba pool already runs (the test suite, a
+    notebook) with OMP_NUM_THREADS=1 set: NUMBA_NUM_THREADS stays unset, so Numba's next compilation works
+    (setting it then made every later compilation fail, as `OMP_NUM_THREADS=1 make test` did)."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS")}
+    code = ("import os, numba, numpy as np\n"
+            "@numba.njit(parallel=True)\ndef total(x):\n    s = 0.0\n"
+            "    for i in numba.prange(x.size):\n        s += x[i]\n    return s\n"
+            "total(np.ones(64))\n"  # the pool is launched here
+            f"import {entry}.__main__\n"
+            "@numba.njit\ndef one_more(x):\n    return x + 1\n"
+            "print(one_more(1), os.environ.get('NUMBA_NUM_THREADS'))\n")
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_NUM_THREADS": "1"}, capture_output=True,
+                         text=True)
+    assert out.returncode == 0, out.stderr[-400:]
+    assert out.stdout.split() == ["2", "None"]
+
+
 def test_grid_workers_beside_each_other_wait_passively(monkeypatch):
     """Several local grid workers share the cores, so they start with OMP_WAIT_POLICY=PASSIVE (their idle
     OpenMP threads sleep); a single job runs in the calling process and leaves the environment alone; a
