@@ -26,8 +26,6 @@ from .results import SCHEMA_VERSION, now_iso, validate
 
 SSIM_DESCRIPTION = "Gaussian window 11, sigma 1.5, data range 1"
 
-
-
 # which relight a result scored, as written into its metric_config (read back by the image grids)
 RELIGHT_NOTES = {"relight_scaled": "scaled per channel by the albedo alignment before shading (relight_scaled/)",
                  "relight": "as predicted (relight/)"}
