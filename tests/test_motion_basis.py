@@ -122,6 +122,27 @@ def test_offsets_are_differentiable_in_every_input():
     assert basis.trans.grad is not None and float(basis.quat.grad.abs().sum()) > 0
 
 
+def test_offsets_gradients_match_finite_differences():
+    """The blend's analytic gradients (the weights' softmax written out, the rigid motions, the network's
+    column) against central differences, float64, at logits that mix every option."""
+    times = [0.0, 0.5, 1.0]
+    means, quats, traj, _ = _two_bodies(times)
+    basis = MotionBasis(times, 2, network=True).double()
+    rigid = MotionBasis(times, 2)
+    rigid.fit(means, traj, torch.arange(80) < 50, torch.Generator().manual_seed(0))
+    basis.load_state_dict({k: v.double() for k, v in rigid.state_dict().items()})
+    gen = torch.Generator().manual_seed(7)
+    n = 12
+    inputs = (means[:n].double(), quats[:n].double(), torch.randn(n, 4, generator=gen, dtype=torch.float64),
+              torch.randn(n, 3, generator=gen, dtype=torch.float64), torch.randn(n, 4, generator=gen, dtype=torch.float64))
+    inputs = tuple(x.clone().requires_grad_(True) for x in inputs)
+
+    def f(m, q, lg, f0, f1):
+        return basis.offsets(m, q, lg, 0.3, (f0, f1))
+
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-7)
+
+
 def test_state_round_trip():
     times = [0.0, 0.5, 1.0]
     means, quats, traj, _ = _two_bodies(times)

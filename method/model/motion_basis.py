@@ -152,7 +152,10 @@ class MotionBasis(nn.Module):
         mu' = mu + P d mu, r' = r + P d r. ``field``: the network's (d mu, d r), the last option of the blend
         when the bases were built with ``network``."""
         a, b, q = self.at(t)
-        w = torch.softmax(logits, -1)                       # (N, B + 1 [+ 1])
+        # softmax written out: torch's along a last dimension of 10 took 5-9 ms forward + backward at 20k rows
+        # on one thread, these four ops 1.5 (BENCHMARKS.md, issue 23, session 52)
+        e = torch.exp(logits - logits.detach().amax(-1, keepdim=True))
+        w = e / e.sum(-1, keepdim=True)                     # (N, B + 1 [+ 1])
         wr = w[:, :a.shape[0]]
         m = (wr @ a.reshape(-1, 9)).reshape(-1, 3, 3)
         x = (m @ means[:, :, None])[..., 0] + wr @ b
