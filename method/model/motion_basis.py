@@ -24,6 +24,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from method.model.nodes import row_softmax
+
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product of w-x-y-z quaternions (broadcasting)."""
@@ -152,10 +154,7 @@ class MotionBasis(nn.Module):
         mu' = mu + P d mu, r' = r + P d r. ``field``: the network's (d mu, d r), the last option of the blend
         when the bases were built with ``network``."""
         a, b, q = self.at(t)
-        # softmax written out: torch's along a last dimension of 10 took 5-9 ms forward + backward at 20k rows
-        # on one thread, these four ops 1.5 (BENCHMARKS.md, issue 23, session 52)
-        e = torch.exp(logits - logits.detach().amax(-1, keepdim=True))
-        w = e / e.sum(-1, keepdim=True)                     # (N, B + 1 [+ 1])
+        w = row_softmax(logits)                             # (N, B + 1 [+ 1])
         wr = w[:, :a.shape[0]]
         m = (wr @ a.reshape(-1, 9)).reshape(-1, 3, 3)
         x = (m @ means[:, :, None])[..., 0] + wr @ b

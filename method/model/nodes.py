@@ -64,6 +64,14 @@ def nearest(x: torch.Tensor, nodes: torch.Tensor, k: int, chunk: int = 8192) -> 
     return torch.cat(ds), torch.cat(ix)
 
 
+def row_softmax(a: torch.Tensor) -> torch.Tensor:
+    """Softmax along the last axis, written out: torch's own along a short last axis (4 nodes, 10 motion bases)
+    took 2.3 ms (4 columns) and 5-9 ms (10) forward + backward at 20k rows on one thread, these ops 0.9 and 1.5
+    (BENCHMARKS.md, issue 23). The max is a shift the result does not depend on."""
+    e = torch.exp(a - a.detach().amax(-1, keepdim=True))
+    return e / e.sum(-1, keepdim=True)
+
+
 class MotionNodes:
     """Where the deformation field is read (``count`` nodes) and how each Gaussian blends them."""
 
@@ -99,11 +107,7 @@ class MotionNodes:
         """(N, K) blend weights of each row of ``x`` over its nearest nodes (rows sum to 1)."""
         nb, s = self.weights_constants()                  # (N, K, 3), (N, K): constants until the next choice
         d2 = ((x[:, None, :] - nb) ** 2).sum(-1)          # (N, K)
-        a = -d2 / (2.0 * s * s)
-        # softmax over the K = 4 columns written out: torch's softmax along a last dimension of 4 took 2.3 ms
-        # forward + backward at 20k rows, these five ops 0.9 (the max is a shift the result does not depend on)
-        e = torch.exp(a - a.detach().amax(-1, keepdim=True))
-        return e / e.sum(-1, keepdim=True)
+        return row_softmax(-d2 / (2.0 * s * s))
 
     def blend(self, values: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         """(N, C): each row's weighted sum of its nodes' ``values`` (M, C). One index_select of the
