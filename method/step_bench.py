@@ -40,7 +40,7 @@ def bench_steps(run_dir: str | Path, *, iteration: int | None = None, steps: int
     from method.optim import fused_supported
     from method.splat.backend import kernels_take_the_threads
     from method.stage1 import Stage1
-    from method.train import Timer, load_training_scene, training_step
+    from method.train import Timer, denormals_flushed, load_training_scene, training_step
 
     run_dir = Path(run_dir)
     rec = run_record.read_record(run_dir)
@@ -60,7 +60,7 @@ def bench_steps(run_dir: str | Path, *, iteration: int | None = None, steps: int
     for section in ("model", "data", "stage1"):  # the settings the run trained with
         cfg[section] = {**cfg[section], **rec.get(section, {})}
     dev = check_device(device)
-    with kernels_take_the_threads(dev):
+    with kernels_take_the_threads(dev), denormals_flushed(dev):
         data = load_training_scene(ident["scene"], ident["light"], cfg, dev)
         stage = Stage1(data, cfg, static=bool(ident.get("static")), device=dev)
         ck = torch.load(chosen[1], map_location=dev, weights_only=False)

@@ -18,6 +18,7 @@ so on the CPU a resumed run equals an uninterrupted one (tests/test_training_loo
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import time
@@ -44,6 +45,25 @@ class TrainingDiverged(UserError):
 
 def default_run_dir(runs: str | Path, profile: str, name: str, scene: str, light: str, seed: int) -> Path:
     return Path(runs) / profile / name / scene / light / f"seed{seed}"
+
+
+@contextlib.contextmanager
+def denormals_flushed(device: torch.device):
+    """Within, on the CPU: float32 values below 1.2e-38 read and written as zero by this thread (FTZ / DAZ;
+    autograd's CPU backward and a one-thread torch run here).
+
+    Why: Adam's second moment of the motion bases' blend logits decays into that range (62 % of its 200k
+    entries at iteration 4,000 of a `small` stage 1, every scene), and the CPU's slow path on such numbers
+    made the optimiser step 2.4x slower (6.0-7.2 -> 2.5-2.8 ms of a ~75 ms step, BENCHMARKS.md, issue 23,
+    session 53). A moment that small moves no parameter. torch has no getter for the mode, so the default
+    (off) is put back after."""
+    if device.type != "cpu" or not torch.set_flush_denormal(True):
+        yield
+        return
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
 
 
 class Timer:
@@ -118,7 +138,7 @@ def run_stage(stage, run_dir: Path, ident: dict, cfg: dict, *, seed: int, resume
     s = cfg[f"stage{k}"]
     dev = stage.device
     what = f"stage {k}"
-    with run_record.RunLock(run_dir), kernels_take_the_threads(dev) as kernel_threads:
+    with run_record.RunLock(run_dir), kernels_take_the_threads(dev) as kernel_threads, denormals_flushed(dev):
         existing = checkpoint_paths(run_dir, k)
         if existing and not resume:
             raise UserError(f"{run_dir} already has stage-{k} checkpoints: pass --resume to continue it, or choose "
