@@ -24,6 +24,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from lumibench.errors import UserError
@@ -56,8 +57,14 @@ def denormals_flushed(device: torch.device):
     entries at iteration 4,000 of a `small` stage 1, every scene), and the CPU's slow path on such numbers
     made the optimiser step 2.4x slower (6.0-7.2 -> 2.5-2.8 ms of a ~75 ms step, BENCHMARKS.md, issue 23,
     session 53). A moment that small moves no parameter. torch has no getter for the mode, so the default
-    (off) is put back after."""
-    if device.type != "cpu" or not torch.set_flush_denormal(True):
+    (off) is put back after. numpy works out its float limits on first use and warns that the smallest
+    subnormal is zero when that first use falls inside, so they are worked out before."""
+    if device.type != "cpu":
+        yield
+        return
+    for t in (np.float16, np.float32, np.float64):
+        np.finfo(t)
+    if not torch.set_flush_denormal(True):
         yield
         return
     try:
