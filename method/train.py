@@ -50,8 +50,9 @@ def default_run_dir(runs: str | Path, profile: str, name: str, scene: str, light
 
 @contextlib.contextmanager
 def denormals_flushed(device: torch.device):
-    """Within, on the CPU: float32 values below 1.2e-38 read and written as zero by this thread (FTZ / DAZ;
-    autograd's CPU backward and a one-thread torch run here).
+    """Within, on the CPU: denormal floats (float32 below 1.2e-38, float64 below 2.2e-308) read and written as
+    zero by this thread (FTZ / DAZ; autograd's CPU backward and a one-thread torch run here; the compiled
+    kernels' float64 sums never come near that range).
 
     Why: Adam's second moment of the motion bases' blend logits decays into that range (62 % of its 200k
     entries at iteration 4,000 of a `small` stage 1, every scene), and the CPU's slow path on such numbers
