@@ -65,13 +65,12 @@ def denormals_flushed(device: torch.device):
         return
     for t in (np.float16, np.float32, np.float64):
         np.finfo(t)
-    if not torch.set_flush_denormal(True):
-        yield
-        return
+    flushing = torch.set_flush_denormal(True)  # False where the CPU cannot: nothing to put back
     try:
         yield
     finally:
-        torch.set_flush_denormal(False)
+        if flushing:
+            torch.set_flush_denormal(False)
 
 
 class Timer:
