@@ -26,7 +26,8 @@ PRIMITIVES = ("box", "sphere", "ico_sphere", "cylinder", "cone", "torus", "rig")
 TEXTURES = ("none", "checker", "noise", "bricks", "stripes")
 TECHNICAL_SCENES = ("calib_sphere", "calib_sphere_glossy")  # not benchmark scenes; for convention tests
 # Bump when generator/motion.py or generator/blender/build.py change what a given spec renders.
-BUILDER_VERSION = 2  # 2: UV spheres built vertex by vertex (deterministic face-corner order)
+BUILDER_VERSION = 3  # 2: UV spheres built vertex by vertex (deterministic face-corner order); 3: the dynamic
+# mask marks the parts that move during the sequence, not whole moving objects (build.mark_moving_parts)
 SCENE_BOX = 1.3  # everything must stay inside [-SCENE_BOX, SCENE_BOX]^3 (the method initialises there)
 
 Vec3 = tuple[float, float, float]

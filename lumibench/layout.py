@@ -8,7 +8,8 @@
       albedo/<split>/r_NNNN.png       base colour, sRGB-encoded 8-bit   (+ r_NNNN.npz: linear float32 H x W x 3)
       roughness/<split>/r_NNNN.png    linear 8-bit                      (+ .npz: float32 H x W x 1)
       normal/<split>/r_NNNN.png       world-space, (n + 1) / 2          (+ .npz: float32 H x W x 3, unit)
-      dynamic_mask/<split>/r_NNNN.png coverage of moving objects        (+ .npz: float32 H x W x 1)
+      dynamic_mask/<split>/r_NNNN.png coverage of what moves: the parts of moving objects that move at some
+                                      time of the sequence (standup's planted feet are 0)  (+ .npz: float32 H x W x 1)
       <light>.hdr, <light>.png        the env map exactly as rendered (32 x 16, or the light's resolution), and a preview
       dataset.json                    spec hash, Blender version, seed, profile, timings; "complete": true
                                       is written last, so a scene without it is unfinished

@@ -11,6 +11,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from generator.blender.build import AOV_ALBEDO, AOV_DYNAMIC, AOV_ROUGHNESS, build_scene, reset_blender  # noqa: E402
+from generator.blender.materials import MOVING_PROPERTY  # noqa: E402
 from generator.spec import SCENE_BOX, available_scenes, load_scene_spec  # noqa: E402
 
 REAL_SCENES = ["hook", "jumpingjacks", "mouse", "spheres", "standup"]
@@ -116,7 +117,33 @@ def test_materials_wire_aovs_to_the_bsdf_inputs(built):
         # the AOV reads the very socket the BSDF reads
         assert aovs[AOV_ALBEDO].inputs["Color"].links[0].from_socket == bsdf.inputs["Base Color"].links[0].from_socket
         assert aovs[AOV_ROUGHNESS].inputs["Value"].links[0].from_socket == bsdf.inputs["Roughness"].links[0].from_socket
-        assert aovs[AOV_DYNAMIC].inputs["Value"].default_value == (1.0 if ob.name in dyn_meshes else 0.0)
+        dyn = aovs[AOV_DYNAMIC].inputs["Value"]
+        if ob.name in dyn_meshes:  # each part of a moving object says whether it moves (its object property)
+            node = dyn.links[0].from_node
+            assert (node.bl_idname, node.attribute_type, node.attribute_name) == (
+                "ShaderNodeAttribute", "OBJECT", MOVING_PROPERTY)
+        else:
+            assert not dyn.is_linked and dyn.default_value == 0.0
+
+
+@pytest.mark.slow
+def test_the_parts_marked_moving_are_those_that_move(built):
+    """Brute force on the test's own time grid: a part is marked moving exactly when one of its vertices
+    leaves its t = 0 position; among the five scenes only standup's planted feet never move."""
+    built.set_time(0.0)
+    start = {ob.name: _verts([ob]) for ob in built.dynamic_objects}
+    most = dict.fromkeys(start, 0.0)
+    for t in TIMES[1:]:
+        built.set_time(float(t))
+        for ob in built.dynamic_objects:
+            most[ob.name] = max(most[ob.name], float(np.abs(_verts([ob]) - start[ob.name]).max()))
+    built.set_time(0.0)
+    for ob in built.dynamic_objects:
+        assert ob[MOVING_PROPERTY] == (1.0 if most[ob.name] > 1e-4 else 0.0), (ob.name, most[ob.name])
+    for ob in built.static_objects:
+        assert ob[MOVING_PROPERTY] == 0.0
+    still = sorted(n for n, d in most.items() if d <= 1e-4)
+    assert still == (["person.foot.L", "person.foot.R"] if built.spec.name == "standup" else [])
 
 
 def _render_aovs(scene, path, res=24, spp=2):
@@ -176,6 +203,24 @@ def test_cycles_renders_the_aovs_with_exact_values(tmp_path):
     assert (dyn > 0.99).sum() >= 20, "balls should cover pixels of the dynamic mask"
     assert (dyn == 0.0).sum() >= 0.5 * dyn.size, "the plate is static"
     assert dyn.min() >= 0.0 and dyn.max() <= 1.0 + 1e-6
+
+
+@pytest.mark.slow
+def test_the_dynamic_aov_is_zero_on_the_parts_of_a_moving_figure_that_never_move(tmp_path):
+    """standup: the figure's planted feet (shoes) render 0 in the dynamic AOV, its legs, arms and shirt 1."""
+    from generator.blender import camera as bcam
+    from generator.cameras import look_at
+
+    spec = load_scene_spec("standup")
+    scene = reset_blender()
+    build_scene(scene, spec).set_time(0.0)
+    bcam.set_camera(scene, look_at((0.3, -2.2, 0.2), (0.0, 0.2, -0.45)), spec.camera.camera_angle_x)
+    ch = _render_aovs(scene, tmp_path / "standup.exr", res=48)
+    dyn, albedo = ch[AOV_DYNAMIC][..., 0], ch[AOV_ALBEDO][..., :3]
+    for group, expected in (("shoes", 0.0), ("pants", 1.0), ("skin", 1.0), ("shirt", 1.0)):
+        on = np.all(np.abs(albedo - np.array(spec.object("person").materials[group].base_color)) < 1e-4, -1)
+        assert on.sum() >= 10, f"{group}: too few pixels in view ({on.sum()})"
+        np.testing.assert_array_equal(dyn[on], expected, err_msg=group)
 
 
 @pytest.mark.slow

@@ -18,9 +18,10 @@ from generator import motion as motion_mod
 from generator.spec import ObjectSpec, SceneSpec
 
 from . import figure
-from .materials import AOV_ALBEDO, AOV_DYNAMIC, AOV_ROUGHNESS, make_material, register_aovs
+from .materials import AOV_ALBEDO, AOV_DYNAMIC, AOV_ROUGHNESS, MOVING_PROPERTY, make_material, register_aovs
 
-__all__ = ["AOV_ALBEDO", "AOV_DYNAMIC", "AOV_ROUGHNESS", "BuiltScene", "build_scene", "make_mesh", "reset_blender"]
+__all__ = ["AOV_ALBEDO", "AOV_DYNAMIC", "AOV_ROUGHNESS", "BuiltScene", "build_scene", "make_mesh", "mark_moving_parts",
+           "reset_blender"]
 
 SEGMENTS = 24  # around spheres/cylinders: smooth enough under smooth shading, cheap to render
 
@@ -187,8 +188,44 @@ def build_scene(bpy_scene, spec: SceneSpec) -> BuiltScene:
             ob.rotation_euler = _base_rotation(o)
             entries[o.name] = _Entry(o, ob, [ob])
     built = BuiltScene(spec, bpy_scene, entries)
+    mark_moving_parts(built)
     built.set_time(0.0)
     return built
+
+
+MOVING_SAMPLES = 101  # times in [0, 1] at which a part's vertices are compared with t = 0
+MOVING_TOLERANCE = 1e-5  # world units: a part whose vertices all stay this close to where they were at t = 0 is static
+
+
+def mark_moving_parts(built: BuiltScene) -> dict[str, bool]:
+    """Set MOVING_PROPERTY on every mesh object: 1 where some vertex leaves its t = 0 position (by more than
+    MOVING_TOLERANCE) at one of MOVING_SAMPLES times over the sequence, 0 on the static receivers and on the
+    parts of a moving object that never move (standup's planted feet). The dynamic mask reads it: the
+    benchmark scores a method's static/dynamic split against it, and a Gaussian on a foot that never moves
+    is rightly static. Parts are rigid (bone-parented), so their vertices tell every motion. Returns
+    {object name: moves}."""
+    import numpy as np
+
+    def world(ob) -> "np.ndarray":
+        m = np.array(ob.matrix_world)
+        co = np.empty(len(ob.data.vertices) * 3)
+        ob.data.vertices.foreach_get("co", co)
+        return co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+
+    parts = built.dynamic_objects
+    built.set_time(0.0)
+    start = {ob.name: world(ob) for ob in parts}
+    moves = dict.fromkeys(start, False)
+    for t in np.linspace(0.0, 1.0, MOVING_SAMPLES)[1:]:
+        built.set_time(float(t))
+        for ob in parts:
+            if not moves[ob.name]:
+                moves[ob.name] = bool(np.abs(world(ob) - start[ob.name]).max() > MOVING_TOLERANCE)
+    for ob in parts:
+        ob[MOVING_PROPERTY] = 1.0 if moves[ob.name] else 0.0
+    for ob in built.static_objects:
+        ob[MOVING_PROPERTY] = 0.0
+    return moves
 
 
 def world_vertices(objects) -> "list[Vector]":

@@ -2,7 +2,10 @@
 
 The "albedo" AOV is wired from the very socket that feeds the BSDF's Base Color, and "roughness" from
 the one that feeds Roughness, so ground truth equals what the shader used (Blender's Diffuse Color pass
-does not). "dynamic" is 1 on moving objects and 0 on static ones: the mask of moving objects.
+does not). "dynamic" is 1 on the parts of moving objects that move during the sequence and 0 elsewhere: the
+mask of what moves. A moving object's material reads it from its part's object property MOVING_PROPERTY
+(set by build.mark_moving_parts), so a part that never moves (a standing figure's planted foot) is static
+although its object moves.
 Procedural patterns use Object coordinates, so textures stick to moving objects.
 """
 from __future__ import annotations
@@ -15,6 +18,7 @@ from generator.spec import MaterialSpec
 AOV_ALBEDO = "albedo"
 AOV_ROUGHNESS = "roughness"
 AOV_DYNAMIC = "dynamic"
+MOVING_PROPERTY = "lumibench_moving"  # per mesh object: 1.0 if it moves at some time of the sequence, else 0.0
 
 
 def register_aovs(view_layer) -> None:
@@ -77,7 +81,12 @@ def make_material(name: str, spec: MaterialSpec, dynamic: bool, seed: int):
     links.new(rough_socket, aov_r.inputs["Value"])
     aov_d = nodes.new("ShaderNodeOutputAOV")
     aov_d.aov_name = AOV_DYNAMIC
-    aov_d.inputs["Value"].default_value = 1.0 if dynamic else 0.0
+    aov_d.inputs["Value"].default_value = 0.0
+    if dynamic:  # one material may dress several parts of a rig: each part says whether it moves
+        moving = nodes.new("ShaderNodeAttribute")
+        moving.attribute_type = "OBJECT"
+        moving.attribute_name = MOVING_PROPERTY
+        links.new(moving.outputs["Fac"], aov_d.inputs["Value"])
     return mat
 
 
