@@ -121,6 +121,13 @@ class Group:
     notes: list[str] = field(default_factory=list)
     # provenance of the successful runs: (adapter version, training settings' sha256 or None) -> scenes
     provenance: dict[tuple[str, str | None], set[str]] = field(default_factory=dict)
+    # per scene, the dataset spec hashes its successful runs were scored on (benchmark.score.dataset_inputs)
+    datasets: dict[str, set[str]] = field(default_factory=dict)
+
+    def mixed_datasets(self) -> list[str]:
+        """The scenes whose runs in this row were scored on more than one version of the scene's dataset
+        (e.g. before and after a ground-truth change of the generator): their mean mixes two references."""
+        return sorted(sc for sc, hashes in self.datasets.items() if len(hashes) > 1)
 
     def mixed_provenance(self) -> bool:
         """True when the row's runs come from more than one adapter version or recorded training setting
@@ -224,6 +231,8 @@ def aggregate(results: list[dict[str, Any]]) -> list[Group]:
         g.n_ok += 1
         settings = (r.get("inputs") or {}).get("method_settings_sha256")
         g.provenance.setdefault((str(r["adapter_version"]), settings), set()).add(r["scene"])
+        if isinstance(dataset := (r.get("inputs") or {}).get("dataset_spec_hash"), str):
+            g.datasets.setdefault(r["scene"], set()).add(dataset)
         for col in COLUMNS + EXTRA_COLUMNS:
             v = metric_value(r, col.key)
             if v is not None:

@@ -145,6 +145,15 @@ def markdown(groups: Sequence[Group], meta: dict[str, Any], reference: Sequence[
             f"version {v}, settings {h[:12] if h else 'not recorded'} on {', '.join(sorted(sc))}"
             for (v, h), sc in sorted(g.provenance.items(), key=lambda kv: (kv[0][0], kv[0][1] or ""))) for g in mixed]
         lines.append("")
+    mixed_data = [(g, sc) for g in groups if not g.reference for sc in g.mixed_datasets()]
+    if mixed_data:
+        lines += ["### Rows that mix datasets", "",
+                  "In each row below, a scene's runs were scored on more than one version of its dataset (the "
+                  "generator's spec hash differs: re-render, then delete the older results to score them again):",
+                  ""]
+        lines += [f"- {g.method} {_pretty(g.configuration)}: {sc} (" + ", ".join(
+            h[:12] for h in sorted(g.datasets[sc])) + ")" for g, sc in mixed_data]
+        lines.append("")
     notes = [(g, n) for g in reference for n in getattr(g, "notes", ())]
     if notes:
         lines += ["### Notes on the reference rows", ""]

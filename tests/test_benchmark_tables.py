@@ -331,6 +331,20 @@ def test_rows_that_mix_adapter_versions_or_settings_are_named():
     assert "Rows that mix runs" not in tables.markdown(aggregate(with_failure), check_consistent(with_failure))
 
 
+def test_a_scene_scored_on_two_versions_of_its_dataset_is_named():
+    def on(r: dict, dataset: str) -> dict:
+        return dict(r, inputs=dict(r["inputs"], dataset_spec_hash=dataset))
+
+    a, b = "cc" * 32, "dd" * 32
+    # two scenes on their own datasets (each scene has its own hash): not a mix
+    same = [on(fake_result("ours", scene="s1", seed=k), a) for k in (0, 1)] + [on(fake_result("ours", scene="s2"), b)]
+    assert "Rows that mix datasets" not in tables.markdown(aggregate(same), check_consistent(same))
+    # s1's third seed scored after the dataset changed
+    mixed = same + [on(fake_result("ours", scene="s1", seed=2), b)]
+    block = tables.markdown(aggregate(mixed), check_consistent(mixed)).split("### Rows that mix datasets")[1]
+    assert f"ours city → sunrise: s1 ({a[:12]}, {b[:12]})" in block and "s2" not in block.split("###")[0]
+
+
 # --- `python -m benchmark tables DIR`: the tables rebuilt from a results folder alone ---
 
 def test_tables_verb_rebuilds_from_stored_results_alone(tmp_path, capsys):
