@@ -10,24 +10,14 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from generator.blender.build import AOV_ALBEDO, AOV_DYNAMIC, AOV_ROUGHNESS, build_scene, reset_blender  # noqa: E402
+from generator.blender.build import (  # noqa: E402
+    AOV_ALBEDO, AOV_DYNAMIC, AOV_ROUGHNESS, build_scene, reset_blender, world_vertices)
 from generator.blender.materials import MOVING_PROPERTY  # noqa: E402
 from generator.spec import SCENE_BOX, available_scenes, load_scene_spec  # noqa: E402
 
 REAL_SCENES = ["hook", "jumpingjacks", "mouse", "spheres", "standup"]
 TIMES = np.linspace(0.0, 1.0, 21)
 TOL = 0.012  # world units: contact, not interpenetration
-
-
-def _verts(objects) -> np.ndarray:
-    out = []
-    for ob in objects:
-        mw = np.array(ob.matrix_world)
-        co = np.empty(len(ob.data.vertices) * 3)
-        ob.data.vertices.foreach_get("co", co)
-        co = co.reshape(-1, 3)
-        out.append(co @ mw[:3, :3].T + mw[:3, 3])
-    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 def _local_box(ob):
@@ -52,11 +42,11 @@ def test_all_real_scenes_listed():
 def test_dynamic_objects_stay_in_box_and_on_receivers(built):
     spec = built.spec
     statics = [(_local_box(ob), ob.name) for ob in built.static_objects]
-    plate_top = max(v[:, 2].max() for v in [_verts([built.objects["plate"]])])
+    plate_top = max(v[:, 2].max() for v in [world_vertices([built.objects["plate"]])])
     assert built.dynamic_objects, "a real scene needs moving objects"
     for t in TIMES:
         built.set_time(float(t))
-        v = _verts(built.dynamic_objects)
+        v = world_vertices(built.dynamic_objects)
         assert np.all(np.abs(v) <= SCENE_BOX + 1e-6), f"{spec.name} t={t}: outside the scene box, max {np.abs(v).max(0)}"
         assert v[:, 2].min() >= plate_top - TOL, f"{spec.name} t={t}: below the plate by {plate_top - v[:, 2].min():.4f}"
         for (w2l, lo, hi), name in statics:
@@ -67,7 +57,7 @@ def test_dynamic_objects_stay_in_box_and_on_receivers(built):
 
 @pytest.mark.slow
 def test_static_objects_in_box(built):
-    v = _verts(built.static_objects)
+    v = world_vertices(built.static_objects)
     assert np.all(np.abs(v) <= SCENE_BOX + 1e-6)
     assert -0.6 - 1e-5 <= v[:, 2].min() <= -0.4  # the ground plate near z = -0.5
 
@@ -75,29 +65,29 @@ def test_static_objects_in_box(built):
 @pytest.mark.slow
 def test_motion_moves_and_is_continuous_and_repeatable(built):
     built.set_time(0.0)
-    v0 = _verts(built.dynamic_objects)
+    v0 = world_vertices(built.dynamic_objects)
     built.set_time(0.5)
-    v5 = _verts(built.dynamic_objects)
+    v5 = world_vertices(built.dynamic_objects)
     assert np.linalg.norm(v5 - v0, axis=1).max() > 0.1, "dynamic objects barely move between t=0 and t=0.5"
     for t in (0.0, 0.31, 0.77, 1.0 - 1e-4):
         built.set_time(t)
-        a = _verts(built.dynamic_objects)
+        a = world_vertices(built.dynamic_objects)
         built.set_time(t + 1e-4)
-        b = _verts(built.dynamic_objects)
+        b = world_vertices(built.dynamic_objects)
         built.set_time(t + 1e-5)
-        c = _verts(built.dynamic_objects)
+        c = world_vertices(built.dynamic_objects)
         far, near = np.linalg.norm(b - a, axis=1).max(), np.linalg.norm(c - a, axis=1).max()
         # continuous: a 10x smaller step moves parts ~10x less (a jump would not shrink), and speeds are sane
         assert far < 5e-3, f"{built.spec.name}: moves {far} in dt=1e-4 near t={t}"
         assert near < 0.3 * far + 1e-6, f"{built.spec.name}: discontinuity near t={t} ({near} vs {far})"
     built.set_time(0.31)
-    again = _verts(built.dynamic_objects)
+    again = world_vertices(built.dynamic_objects)
     built.set_time(0.77)
     built.set_time(0.31)
-    assert np.array_equal(again, _verts(built.dynamic_objects)), "set_time must not depend on history"
-    statics0 = _verts(built.static_objects)
+    assert np.array_equal(again, world_vertices(built.dynamic_objects)), "set_time must not depend on history"
+    statics0 = world_vertices(built.static_objects)
     built.set_time(0.9)
-    assert np.array_equal(statics0, _verts(built.static_objects)), "static objects must not move"
+    assert np.array_equal(statics0, world_vertices(built.static_objects)), "static objects must not move"
 
 
 @pytest.mark.slow
@@ -131,12 +121,12 @@ def test_the_parts_marked_moving_are_those_that_move(built):
     """Brute force on the test's own time grid: a part is marked moving exactly when one of its vertices
     leaves its t = 0 position; among the five scenes only standup's planted feet never move."""
     built.set_time(0.0)
-    start = {ob.name: _verts([ob]) for ob in built.dynamic_objects}
+    start = {ob.name: world_vertices([ob]) for ob in built.dynamic_objects}
     most = dict.fromkeys(start, 0.0)
     for t in TIMES[1:]:
         built.set_time(float(t))
         for ob in built.dynamic_objects:
-            most[ob.name] = max(most[ob.name], float(np.abs(_verts([ob]) - start[ob.name]).max()))
+            most[ob.name] = max(most[ob.name], float(np.abs(world_vertices([ob]) - start[ob.name]).max()))
     built.set_time(0.0)
     for ob in built.dynamic_objects:
         assert ob[MOVING_PROPERTY] == (1.0 if most[ob.name] > 1e-4 else 0.0), (ob.name, most[ob.name])
@@ -233,7 +223,7 @@ def test_scene_in_frame_from_cameras_over_the_spec_hemisphere(built):
     pts = []
     for t in np.linspace(0.0, 1.0, 6):
         built.set_time(float(t))
-        pts.append(_verts(built.dynamic_objects + built.static_objects))
+        pts.append(world_vertices(built.dynamic_objects + built.static_objects))
     pts = np.concatenate(pts)
     cams = train_cameras(32, spec.camera.radius, spec.camera.target, spec.camera.elevation_deg, seed=spec.seed)
     for c2w in cams:

@@ -206,21 +206,15 @@ def mark_moving_parts(built: BuiltScene) -> dict[str, bool]:
     {object name: moves}."""
     import numpy as np
 
-    def world(ob) -> "np.ndarray":
-        m = np.array(ob.matrix_world)
-        co = np.empty(len(ob.data.vertices) * 3)
-        ob.data.vertices.foreach_get("co", co)
-        return co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
-
     parts = built.dynamic_objects
     built.set_time(0.0)
-    start = {ob.name: world(ob) for ob in parts}
+    start = {ob.name: world_vertices([ob]) for ob in parts}
     moves = dict.fromkeys(start, False)
     for t in np.linspace(0.0, 1.0, MOVING_SAMPLES)[1:]:
         built.set_time(float(t))
         for ob in parts:
             if not moves[ob.name]:
-                moves[ob.name] = bool(np.abs(world(ob) - start[ob.name]).max() > MOVING_TOLERANCE)
+                moves[ob.name] = bool(np.abs(world_vertices([ob]) - start[ob.name]).max() > MOVING_TOLERANCE)
     for ob in parts:
         ob[MOVING_PROPERTY] = 1.0 if moves[ob.name] else 0.0
     for ob in built.static_objects:
@@ -228,10 +222,15 @@ def mark_moving_parts(built: BuiltScene) -> dict[str, bool]:
     return moves
 
 
-def world_vertices(objects) -> "list[Vector]":
-    """World-space vertex positions of mesh objects (exact for rigid, unmodified meshes)."""
+def world_vertices(objects) -> "np.ndarray":
+    """World-space vertex positions of mesh objects as one (N, 3) array, in the objects' order (exact for
+    rigid, unmodified meshes: the scenes' parts are bone-parented, not deformed)."""
+    import numpy as np
+
     out = []
     for ob in objects:
-        mw = ob.matrix_world
-        out.extend(mw @ v.co for v in ob.data.vertices)
-    return out
+        m = np.array(ob.matrix_world)
+        co = np.empty(len(ob.data.vertices) * 3)
+        ob.data.vertices.foreach_get("co", co)
+        out.append(co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3])
+    return np.concatenate(out) if out else np.zeros((0, 3))
