@@ -266,3 +266,42 @@ def test_the_bases_settings_hash_only_where_the_bases_are_on(tmp_path):
     on = h("on", ["model.motion_bases=8"])
     assert on != h("off", off)
     assert on != h("on_knots", ["model.motion_bases=8", "model.motion_knots=6"])
+
+
+@pytest.mark.parametrize("network", [True, False])
+def test_the_compiled_blend_equals_the_torch_reference(network):
+    """The compiled blend (method/model/basis_numba.py, what a CPU training runs) against the torch ops of
+    offsets_reference, float64: both outputs and the gradients of every input (means, rotations, logits,
+    the network's offsets, the bases' knots), at rotations off the unit sphere and bases far from the
+    identity, so every term of the backward matters."""
+    pytest.importorskip("numba")
+    from method.model.basis_numba import basis_offsets
+
+    gen = torch.Generator().manual_seed(3)
+    n, bases = 300, 5
+    basis = MotionBasis([0.0, 0.3, 0.7, 1.0], bases, network=network).double()
+    with torch.no_grad():
+        basis.quat.add_(0.5 * torch.randn(basis.quat.shape, generator=gen, dtype=torch.float64))
+        basis.trans.add_(0.5 * torch.randn(basis.trans.shape, generator=gen, dtype=torch.float64))
+        basis.pivot.copy_(torch.randn(basis.pivot.shape, generator=gen, dtype=torch.float64))
+    leaves = [torch.randn(n, 3, generator=gen, dtype=torch.float64), torch.randn(n, 4, generator=gen, dtype=torch.float64),
+              2 * torch.randn(n, bases + 1 + network, generator=gen, dtype=torch.float64),
+              torch.randn(n, 3, generator=gen, dtype=torch.float64), torch.randn(n, 4, generator=gen, dtype=torch.float64)]
+    g_mu = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    g_rot = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    results = []
+    for compiled in (False, True):
+        xs = [x.clone().requires_grad_(True) for x in leaves]
+        basis.zero_grad()
+        field = (xs[3], xs[4]) if network else None
+        a, b, q = basis.at(0.45)
+        if compiled:
+            d_mu, d_rot = basis_offsets(xs[0], xs[1], xs[2], a, b, q, field)
+        else:
+            d_mu, d_rot = basis.offsets_reference(xs[0], xs[1], xs[2], (a, b, q), field)
+        ((d_mu * g_mu).sum() + (d_rot * g_rot).sum()).backward()
+        grads = [x.grad for x in (xs if network else xs[:3])] + [basis.quat.grad.clone(), basis.trans.grad.clone()]
+        results.append([d_mu.detach(), d_rot.detach()] + grads)
+    for want, got in zip(*results):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+    assert float(results[0][-1].abs().max()) > 0.1 and float(results[0][-2].abs().max()) > 0.1  # the knots learn

@@ -272,7 +272,8 @@ def test_setting_reaches_rasterize_and_trace(monkeypatch):
 def test_every_compiled_kernel_can_be_cached():
     """A kernel that reads a ctypes global (numba.get_num_threads() inside it did) cannot go to numba's
     on-disk cache, so every process compiles it again (~14 s for the raster forward): after a raster
-    forward + backward, a trace, the nodes' blend, the diffuse quadrature and the SSIM through the compiled backend, no
+    forward + backward, a trace, the nodes' blend, the diffuse quadrature, the SSIM and the motion bases'
+    blend through the compiled backend, no
     kernel they compiled holds one."""
     from numba.core.registry import CPUDispatcher
 
@@ -306,13 +307,18 @@ def test_every_compiled_kernel_can_be_cached():
     from method.splat.rasterize import normal_from_depth
 
     normal_from_depth(torch.rand(5, 6, dtype=F64, requires_grad=True) + 1, cam64, backend="numba").sum().backward()
-    kernels = {f"{m.__name__}.{k}": v for m in (rn, tn, bn, qn, sn, dn) for k, v in vars(m).items()
+    import method.model.basis_numba as mn  # the motion bases' blend
+
+    mn.basis_offsets(x, torch.rand(5, 4), torch.rand(5, 3, requires_grad=True), torch.rand(2, 3, 3),
+                     torch.rand(2, 3), torch.rand(2, 4), (torch.rand(5, 3), torch.rand(5, 4)))[0].sum().backward()
+    kernels = {f"{m.__name__}.{k}": v for m in (rn, tn, bn, qn, sn, dn, mn) for k, v in vars(m).items()
                if isinstance(v, CPUDispatcher)}
     compiled = {name: k for name, k in kernels.items() if k.overloads}
     assert {"method.splat.raster_numba.forward", "method.splat.raster_numba.backward"} <= set(compiled)
     assert any(name.startswith("method.splat.trace_numba.") for name in compiled)
     assert {"method.model.blend_numba.blend_backward", "method.shading.quadrature_numba.cosine_backward",
-            "method.ssim_numba.ssim_backward", "method.splat.depth_normals_numba.normals_backward"} <= set(compiled)
+            "method.ssim_numba.ssim_backward", "method.splat.depth_normals_numba.normals_backward",
+            "method.model.basis_numba.basis_backward"} <= set(compiled)
     uncachable = [name for name, k in compiled.items()
                   if k._cache is not None and any(c.library.has_dynamic_globals for c in k.overloads.values())]
     assert uncachable == []

@@ -90,7 +90,6 @@ class DeformNet(nn.Module):
         # weight's encoding columns are gathered to match (the stored layout stays positional_encoding's)
         order = torch.tensor(blocked_order(3, pos_freqs))
         self.register_buffer("_enc_cols", order, persistent=False)
-        self.register_buffer("_skip_cols", torch.cat([torch.arange(width), width + order]), persistent=False)
         self.d_mu = nn.Linear(width, 3)
         self.d_rot = nn.Linear(width, 4)
         self.d_col = nn.Linear(width, 3)
@@ -128,14 +127,18 @@ class DeformNet(nn.Module):
         tt = torch.full((1, 1), float(t), dtype=x_norm.dtype, device=x_norm.device)
         tfeat = self.time_net(positional_encoding(tt, self.time_freqs))  # (1, time_net_out)
         enc = blocked_encoding(x_norm, self.pos_freqs)
-        h = enc
-        for i, layer in enumerate(self.layers):
-            if i == 0 or (self.skip and i == self.skip):
-                if i:
-                    h = torch.cat([h, enc], -1)
-                w = h.shape[-1]  # the input columns every Gaussian has; the rest of the weight is the time's
-                bias = F.linear(tfeat, layer.weight[:, w:], layer.bias)[0]
-                h = F.linear(h, layer.weight[:, self._skip_cols if i else self._enc_cols], bias)
+        e = enc.shape[-1]
+        first = self.layers[0]
+        bias = F.linear(tfeat, first.weight[:, e:], first.bias)[0]
+        h = torch.relu_(F.linear(enc, first.weight[:, self._enc_cols], bias))
+        for i, layer in enumerate(self.layers[1:], 1):
+            if self.skip and i == self.skip:
+                # [h, enc] W^T as h W_h^T + enc W_e^T: the backward computes no gradient for the encoding's
+                # columns (none is needed: the network is read at constant positions), and no product has
+                # the odd width 167 (BENCHMARKS.md, issue 23, session 55)
+                w = h.shape[-1]
+                bias = F.linear(tfeat, layer.weight[:, w + e:], layer.bias)[0]
+                h = torch.addmm(F.linear(enc, layer.weight[:, w + self._enc_cols], bias), h, layer.weight[:, :w].t())
             else:
                 h = layer(h)
             h = torch.relu_(h)  # in place: the products' backward needs their inputs, not their outputs

@@ -154,6 +154,20 @@ class MotionBasis(nn.Module):
         mu' = mu + P d mu, r' = r + P d r. ``field``: the network's (d mu, d r), the last option of the blend
         when the bases were built with ``network``."""
         a, b, q = self.at(t)
+        from method.splat.backend import resolve
+
+        if resolve(None, means.device) == "numba":  # the compiled blend (method/model/basis_numba.py)
+            from method.model.basis_numba import basis_offsets
+
+            return basis_offsets(means, quats, logits, a, b, q, field if self.network else None)
+        return self.offsets_reference(means, quats, logits, (a, b, q), field)
+
+    def offsets_reference(self, means: torch.Tensor, quats: torch.Tensor, logits: torch.Tensor,
+                          bases: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                          field: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``offsets`` in torch ops, from the bases' ``at(t)``: the reference the compiled blend is held to,
+        and the CUDA path."""
+        a, b, q = bases
         w = row_softmax(logits)                             # (N, B + 1 [+ 1])
         wr = w[:, :a.shape[0]]
         m = (wr @ a.reshape(-1, 9)).reshape(-1, 3, 3)

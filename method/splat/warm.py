@@ -19,18 +19,19 @@ def kernels() -> dict:
     from numba.core.registry import CPUDispatcher
 
     from method import ssim_numba
-    from method.model import blend_numba
+    from method.model import basis_numba, blend_numba
     from method.shading import quadrature_numba
     from method.splat import depth_normals_numba, raster_numba, trace_numba
 
     return {f"{mod.__name__.rsplit('.', 1)[-1]}.{name}": f
-            for mod in (raster_numba, depth_normals_numba, trace_numba, blend_numba, quadrature_numba, ssim_numba)
+            for mod in (raster_numba, depth_normals_numba, trace_numba, blend_numba, basis_numba, quadrature_numba,
+                        ssim_numba)
             for name, f in vars(mod).items() if isinstance(f, CPUDispatcher) and not name.startswith("_")}
 
 
 def warm() -> list[str]:
     """Run each compiled kernel once (raster forward + backward with screen offsets, visibility and hit
-    tracing, the nodes' blend, the diffuse quadrature, the training SSIM); return the names of the kernels now compiled. Raises ImportError without Numba."""
+    tracing, the nodes' blend, the motion bases' blend, the diffuse quadrature, the training SSIM); return the names of the kernels now compiled. Raises ImportError without Numba."""
     import numba  # noqa: F401  (the point: nothing to warm without it)
 
     from method.splat.bench import make_scene, make_trace_queries, raster_loss
@@ -54,6 +55,13 @@ def warm() -> list[str]:
     index = np.zeros((x.shape[0], 4), np.int64)
     near, sigma = np.zeros((x.shape[0], 4, 3)), np.ones((x.shape[0], 4))
     blend_at_nodes(x, torch.ones(1, 3, requires_grad=True), index, near, sigma).sum().backward()
+    from method.model.basis_numba import basis_offsets  # the motion bases' blend (model.motion_bases)
+
+    quats = torch.ones(x.shape[0], 4)
+    logits = torch.zeros(x.shape[0], 3, requires_grad=True)
+    eye = torch.eye(3).expand(2, 3, 3)
+    basis_offsets(x, quats, logits, eye, torch.zeros(2, 3), torch.ones(2, 4),
+                  (torch.zeros(x.shape[0], 3), torch.zeros(x.shape[0], 4)))[0].sum().backward()
     from method.shading.envmap import texel_moments  # stage 2's exact diffuse quadrature
     from method.shading.quadrature_numba import cosine_weights_compiled
 
