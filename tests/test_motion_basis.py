@@ -1,8 +1,9 @@
 """Rigid motion bases (method/model/motion_basis.py) on cases with a known answer: quaternion algebra against
 rotation matrices, Kabsch's fit of an exact rigid motion, and the bases fitted to two rigid bodies and a
 static part reproducing every trajectory (positions and rotations) at the knots and between them; the
-network's option in the blend; and in training: resume equality across the split, stage 2's freeze, the
-settings' validation and their place in the settings hash."""
+network's option in the blend; the compiled blend (method/model/basis_numba.py) held to the torch reference;
+and in training: resume equality across the split, stage 2's freeze, the settings' validation and their place
+in the settings hash."""
 from __future__ import annotations
 
 import math
