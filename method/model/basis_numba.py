@@ -185,9 +185,12 @@ class _BasisOffsets(torch.autograd.Function):
         gm, gq, gw, gfm, gfr, o = basis_backward(means, quats, w, f_mu, f_rot, a, b, q, net, as_f64(g_mu),
                                                  as_f64(g_rot), numba.get_num_threads())
         k = a.shape[0]
-        bases = (torch.from_numpy(w).T @ torch.from_numpy(o))[:k]  # (K, 16): the bases' a, b and q gradients
+        # (K, 16): the bases' a, b and q gradients, in the inputs' precision (float64's product of this thin
+        # shape was 1.1-1.8 ms on one thread of the AVX2 EPYC, float32's 0.24-0.42 with the casts)
+        dt = ctx.dtype
+        bases = (torch.from_numpy(w).to(dt).T @ torch.from_numpy(o).to(dt))[:k]
         out = [torch.from_numpy(g).to(ctx.dtype) for g in (gm, gq, gw, gfm, gfr)]
-        out += [g.to(ctx.dtype) for g in (bases[:, :9].reshape(k, 3, 3), bases[:, 9:12], bases[:, 12:])]
+        out += [bases[:, :9].reshape(k, 3, 3), bases[:, 9:12], bases[:, 12:]]
         if not net:  # f_mu, f_rot were placeholders
             out[3] = out[4] = None
         return (*out, None)

@@ -3,14 +3,18 @@
 The same model as the torch path (rasterize.py, composite.py), computed in float64 per image row:
 splats are listed per image row in depth-rank order (a counting sort over the splats, not over the
 pairs), so each row's pixels are composited front to back as the row's list is walked, with no pair list
-and no global sort. Per splat and row, the closed-form x-span of the support bounds the pixels tested
+to build or sort first. Per splat and row, the closed-form x-span of the support bounds the pixels tested
 (as _candidate_spans); each pixel then runs the exact alpha test, the T < 1e-4 stop and the
 accumulation of features, depth, distortion moments and the median. Rows are independent, so the
 forward is parallel over rows and writes each pixel once; rows are dealt to the threads round-robin, as in
 the backward (prange's equal blocks of rows gave one of two threads 1.5-1.9x the mean pairs on real training
 views, whose ground fills the lower half).
 
-The backward walks the same rows again and recomputes every pair (cheaper than storing them). Per
+The forward keeps a record of the pairs it composited (each one's splat, pixel column and Gaussian factor,
+row by row in compositing order; 16 bytes a pair, slots sized by pair_slots), and the backward walks that
+record: no span, no alpha test, no exponential and no early-stop bookkeeping redone, only the pair's
+cheap terms (_pair_terms). Recomputing every pair instead made the backward 1.1-1.9x slower on real `small`
+views, with the same gradients to the last bit (BENCHMARKS.md, issue 23, session 56). Per
 pixel, the suffix sum the compositing gradient needs (sum over later pairs of g_w w) is the pixel's
 total, known from the forward outputs, minus a running prefix:
     sum_k g_w_k w_k = sum_c gF_c F_c + gD D + 2 gDist (W M2 - M1^2).
@@ -113,6 +117,21 @@ def row_lists(order, y0, y1, height):
     return counts, ids
 
 
+@njit(cache=True, error_model="numpy")
+def pair_slots(starts, ids, x0, x1, height):
+    """Where each row's composited pairs go in the forward's pair record: row y writes from slot off[y]
+    (off (H+1,), off[H] the record's size), with room for every pixel of its splats' boxes (an upper bound
+    on its pairs: a pair is a pixel inside a splat's span, and the span inside its box)."""
+    off = np.zeros(height + 1, np.int64)
+    for y in range(height):
+        room = 0
+        for li in range(starts[y], starts[y + 1]):
+            s = ids[li]
+            room += x1[s] - x0[s] + 1
+        off[y + 1] = off[y] + room
+    return off
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _span(r, s, kk, bounded, x0, x1, yc, cx, width):
     """Closed-form pixel interval [j0, j1] of splat s's support on the row at centred y = yc."""
@@ -172,10 +191,12 @@ def _pair(r, s, xc, yc):
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop,
-            threads):
+            off, threads):
     """Per pixel (H W): features (K), sum w z, distortion, log T, W, M1, M2, median depth and splat.
-    Per splat: visible. Per row: pairs composited. ``threads``: numba's thread count, passed in (reading it
-    here would make the kernel uncacheable: a ctypes global)."""
+    Per splat: visible. Per row: pairs composited. The pair record for the backward, when ``off`` (from
+    pair_slots) is given (an empty ``off``: none kept): each composited pair's splat, pixel column and
+    Gaussian factor, row y's in compositing order from slot off[y]. ``threads``: numba's thread count,
+    passed in (reading it here would make the kernel uncacheable: a ctypes global)."""
     npix = width * height
     K = attrs.shape[1]
     feat = np.zeros((npix, K))
@@ -188,6 +209,11 @@ def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, n
     med_id = np.full(npix, -1, np.int64)
     visible = np.zeros(r.shape[0], np.bool_)
     pairs = np.zeros(height, np.int64)
+    keep = off.shape[0] == height + 1
+    size = off[height] if keep else 0
+    pair_s = np.empty(size, np.int32)
+    pair_x = np.empty(size, np.int32)
+    pair_g = np.empty(size)
     nt = max(1, min(threads, height))
     for ti in prange(nt):  # rows dealt out round-robin: prange's equal halves of a view are not equal work
         done = np.zeros(width, np.bool_)
@@ -196,6 +222,7 @@ def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, n
             done[:] = False
             base = y * width
             n_pairs = 0
+            slot = off[y] if keep else 0
             for li in range(starts[y], starts[y + 1]):
                 s = ids[li]
                 j0, j1 = _span(r, s, kk, bounded, x0, x1, yc, cx, width)
@@ -226,17 +253,46 @@ def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, n
                     trans[p] = t_after
                     visible[s] = True
                     n_pairs += 1
+                    if keep:
+                        pair_s[slot] = s
+                        pair_x[slot] = x
+                        pair_g[slot] = gauss
+                        slot += 1
             pairs[y] = n_pairs
             for x in range(width):
                 log_t[base + x] = math.log(trans[base + x])
-    return feat, dsum, dist, log_t, mom, med, med_id, visible, pairs
+    return feat, dsum, dist, log_t, mom, med, med_id, visible, pairs, pair_s, pair_x, pair_g
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _pair_terms(r, s, xc, yc):
+    """_pair's terms without the Gaussian factor (the pair record keeps it): hit depth, which of the two
+    distances applies, u, v, 1 / c2, dx, dy. The same operations as _pair's, so the same values."""
+    c0 = r[s, 0] + xc * r[s, 3] + yc * r[s, 6]
+    c1 = r[s, 1] + xc * r[s, 4] + yc * r[s, 7]
+    c2 = r[s, 2] + xc * r[s, 5] + yc * r[s, 8]
+    grazing = abs(c2) <= TINY
+    if grazing:
+        c2 = TINY
+    inv = 1.0 / c2
+    u = c0 * inv
+    v = c1 * inv
+    rho3 = u * u + v * v
+    dx = xc - r[s, 10]
+    dy = yc - r[s, 11]
+    rho2 = 2.0 * (dx * dx + dy * dy)
+    use3 = (rho3 <= rho2) and not grazing
+    depth = r[s, 9] * inv if use3 else r[s, 12]
+    return depth, use3, u, v, inv, dx, dy
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def backward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop,
+def backward(r, attrs, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
              feat, dsum, mom, med_id, g_feat, g_dsum, g_dist, g_logt, g_med, nt):
-    """Gradients w.r.t. the rows r (N, 14) and attrs (N, K), given the upstream per-pixel gradients;
-    ``nt`` per-thread buffers."""
+    """Gradients w.r.t. the rows r (N, 14) and attrs (N, K), given the upstream per-pixel gradients, over
+    the forward's pair record (off, pairs per row, and each pair's splat, column and Gaussian factor): the
+    composited pairs only, in the forward's order, with no span, alpha test or exponential to redo.
+    ``nt`` per-thread buffers, rows dealt round-robin."""
     n = r.shape[0]
     K = attrs.shape[1]
     g_r = np.zeros((nt, n, 14))
@@ -247,7 +303,6 @@ def backward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, 
         trans = np.ones(width)
         prefix = np.zeros(width)
         total = np.zeros(width)
-        done = np.zeros(width, np.bool_)
         for y in range(ti, height, nt):
             yc = y + 0.5 - cy
             base = y * width
@@ -259,66 +314,70 @@ def backward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, 
                 total[x] = tot
                 trans[x] = 1.0
                 prefix[x] = 0.0
-                done[x] = False
-            for li in range(starts[y], starts[y + 1]):
-                s = ids[li]
-                j0, j1 = _span(r, s, kk, bounded, x0, x1, yc, cx, width)
-                for x in range(j0, j1 + 1):
-                    if done[x]:
-                        continue
-                    xc = x + 0.5 - cx
-                    alpha, depth, use3, u, v, inv, dx, dy, gauss, unclamped = _pair(r, s, xc, yc)
-                    if alpha < ALPHA_MIN or depth < near:
-                        continue
-                    p = base + x
-                    t = trans[x]
-                    t_after = t * (1.0 - alpha)
-                    if t_after < t_stop:
-                        done[x] = True
-                        continue
-                    w = alpha * t
-                    dz = max(depth, 1e-6)
-                    m = m_scale * (1.0 - m_near / dz)
-                    gw = g_dsum[p] * depth + g_dist[p] * (m * m * mom[p, 0] - 2.0 * m * mom[p, 1] + mom[p, 2])
-                    for c in range(K):
-                        gw += g_feat[p, c] * attrs[s, c]
-                        ga[s, c] += w * g_feat[p, c]
-                    prefix[x] += gw * w
-                    g_alpha = gw * t - (total[x] - prefix[x] + g_logt[p]) / (1.0 - alpha)
-                    g_m = g_dist[p] * 2.0 * w * (m * mom[p, 0] - mom[p, 1])
-                    g_depth = g_dsum[p] * w
-                    if depth > 1e-6:
-                        g_depth += g_m * (m_scale * m_near) / (dz * dz)
-                    if med_id[p] == s:
-                        g_depth += g_med[p]
-                    trans[x] = t_after
-                    # alpha and depth of the pair -> the splat's row (as _PairAlpha.backward)
-                    g_o = g_alpha * gauss if unclamped else 0.0
-                    gr[s, 13] += g_o
-                    g_rho = g_o * r[s, 13] * -0.5
-                    if use3:
-                        gc0 = 2.0 * g_rho * u * inv
-                        gc1 = 2.0 * g_rho * v * inv
-                        gc2 = -(2.0 * g_rho * (u * u + v * v) + g_depth * depth) * inv
-                        gr[s, 0] += gc0
-                        gr[s, 1] += gc1
-                        gr[s, 2] += gc2
-                        gr[s, 3] += xc * gc0
-                        gr[s, 4] += xc * gc1
-                        gr[s, 5] += xc * gc2
-                        gr[s, 6] += yc * gc0
-                        gr[s, 7] += yc * gc1
-                        gr[s, 8] += yc * gc2
-                        gr[s, 9] += g_depth * inv
-                    else:
-                        gr[s, 10] += -4.0 * g_rho * dx
-                        gr[s, 11] += -4.0 * g_rho * dy
-                        gr[s, 12] += g_depth
-    out_r = g_r[0].copy()
-    out_a = g_a[0].copy()
-    for ti in range(1, nt):
-        out_r += g_r[ti]
-        out_a += g_a[ti]
+            for k in range(off[y], off[y] + pairs[y]):
+                s = pair_s[k]
+                x = pair_x[k]
+                gauss = pair_g[k]
+                xc = x + 0.5 - cx
+                depth, use3, u, v, inv, dx, dy = _pair_terms(r, s, xc, yc)
+                raw = r[s, 13] * gauss
+                alpha = min(raw, ALPHA_MAX)
+                p = base + x
+                t = trans[x]
+                w = alpha * t
+                dz = max(depth, 1e-6)
+                m = m_scale * (1.0 - m_near / dz)
+                gw = g_dsum[p] * depth + g_dist[p] * (m * m * mom[p, 0] - 2.0 * m * mom[p, 1] + mom[p, 2])
+                for c in range(K):
+                    gw += g_feat[p, c] * attrs[s, c]
+                    ga[s, c] += w * g_feat[p, c]
+                prefix[x] += gw * w
+                g_alpha = gw * t - (total[x] - prefix[x] + g_logt[p]) / (1.0 - alpha)
+                g_m = g_dist[p] * 2.0 * w * (m * mom[p, 0] - mom[p, 1])
+                g_depth = g_dsum[p] * w
+                if depth > 1e-6:
+                    g_depth += g_m * (m_scale * m_near) / (dz * dz)
+                if med_id[p] == s:
+                    g_depth += g_med[p]
+                trans[x] = t * (1.0 - alpha)
+                # alpha and depth of the pair -> the splat's row (as _PairAlpha.backward)
+                g_o = g_alpha * gauss if raw < ALPHA_MAX else 0.0
+                gr[s, 13] += g_o
+                g_rho = g_o * r[s, 13] * -0.5
+                if use3:
+                    gc0 = 2.0 * g_rho * u * inv
+                    gc1 = 2.0 * g_rho * v * inv
+                    gc2 = -(2.0 * g_rho * (u * u + v * v) + g_depth * depth) * inv
+                    gr[s, 0] += gc0
+                    gr[s, 1] += gc1
+                    gr[s, 2] += gc2
+                    gr[s, 3] += xc * gc0
+                    gr[s, 4] += xc * gc1
+                    gr[s, 5] += xc * gc2
+                    gr[s, 6] += yc * gc0
+                    gr[s, 7] += yc * gc1
+                    gr[s, 8] += yc * gc2
+                    gr[s, 9] += g_depth * inv
+                else:
+                    gr[s, 10] += -4.0 * g_rho * dx
+                    gr[s, 11] += -4.0 * g_rho * dy
+                    gr[s, 12] += g_depth
+    if nt == 1:
+        return g_r[0], g_a[0]
+    out_r = np.empty((n, 14))
+    out_a = np.empty((n, K))
+    for ch in prange((n + SPLAT_BLOCK - 1) // SPLAT_BLOCK):  # the buffers summed in thread order
+        for i in range(ch * SPLAT_BLOCK, min(n, (ch + 1) * SPLAT_BLOCK)):
+            for c in range(14):
+                acc = g_r[0, i, c]
+                for ti in range(1, nt):
+                    acc += g_r[ti, i, c]
+                out_r[i, c] = acc
+            for c in range(K):
+                acc = g_a[0, i, c]
+                for ti in range(1, nt):
+                    acc += g_a[ti, i, c]
+                out_a[i, c] = acc
     return out_r, out_a
 
 
@@ -568,14 +627,17 @@ class _RasterRows(torch.autograd.Function):
     ascends through memory; visibility and the gradients are put back in the callers' numbering."""
 
     @staticmethod
-    def forward(ctx, rows, attrs, geom, width, height, cx, cy, near, m_scale, m_near, t_stop):
+    def forward(ctx, rows, attrs, geom, width, height, cx, cy, near, m_scale, m_near, t_stop, keep):
         x0, x1, starts, ids, kk, bounded, order = geom
         idx = torch.from_numpy(order)
         r, a = as_f64(rows.detach().index_select(0, idx)), as_f64(attrs.detach().index_select(0, idx))
-        feat, dsum, dist, log_t, mom, med, med_id, visible, pairs = forward(
-            r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop,
+        # the backward's pair record, kept only when a backward will run (``keep``)
+        off = pair_slots(starts, ids, x0, x1, height) if keep else np.zeros(0, np.int64)
+        feat, dsum, dist, log_t, mom, med, med_id, visible, pairs, pair_s, pair_x, pair_g = forward(
+            r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop, off,
             numba.get_num_threads())
-        ctx.state = (r, a, geom, width, height, cx, cy, near, m_scale, m_near, t_stop, feat, dsum, mom, med_id)
+        ctx.state = (r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
+                     feat, dsum, mom, med_id)
         ctx.dtype = rows.dtype
         ctx.n = rows.shape[0]
         outs = tuple(torch.from_numpy(v).to(rows.dtype) for v in (feat, dsum, dist, log_t, med))
@@ -587,20 +649,20 @@ class _RasterRows(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_feat, g_dsum, g_dist, g_logt, g_med, _g_vis, _g_pairs):
-        r, a, geom, width, height, cx, cy, near, m_scale, m_near, t_stop, feat, dsum, mom, med_id = ctx.state
-        x0, x1, starts, ids, kk, bounded, order = geom
+        (r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
+         feat, dsum, mom, med_id) = ctx.state
         npix = width * height
 
         def grad(g, shape):
             return np.zeros(shape) if g is None else as_f64(g).reshape(shape)
 
-        gr, ga = backward(r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near,
-                          t_stop, feat, dsum, mom, med_id, grad(g_feat, (npix, a.shape[1])), grad(g_dsum, npix),
+        gr, ga = backward(r, a, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
+                          feat, dsum, mom, med_id, grad(g_feat, (npix, a.shape[1])), grad(g_dsum, npix),
                           grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix), numba.get_num_threads())
         idx = torch.from_numpy(order)
         g_rows = torch.zeros((ctx.n, gr.shape[1]), dtype=ctx.dtype).index_copy_(0, idx, torch.from_numpy(gr).to(ctx.dtype))
         g_attrs = torch.zeros((ctx.n, ga.shape[1]), dtype=ctx.dtype).index_copy_(0, idx, torch.from_numpy(ga).to(ctx.dtype))
-        return (g_rows, g_attrs) + (None,) * 9
+        return (g_rows, g_attrs) + (None,) * 10
 
 
 class _ProjectRows(torch.autograd.Function):
@@ -668,9 +730,9 @@ def composite_rows(rows, attrs, x0, x1, y0, y1, valid, bounded, k2, z, width: in
             np.ascontiguousarray(bounded.detach().cpu().numpy())[order], order)
     args = (geom, width, height, float(cx), float(cy), float(near), float(m_scale), float(m_near), float(t_stop))
     if torch.is_grad_enabled() and (rows.requires_grad or attrs.requires_grad):
-        *outs, vis, n_pairs = _RasterRows.apply(rows, attrs, *args)
+        *outs, vis, n_pairs = _RasterRows.apply(rows, attrs, *args, True)
     else:
-        *outs, vis, n_pairs = _RasterRows.forward(_Ctx(), rows, attrs, *args)
+        *outs, vis, n_pairs = _RasterRows.forward(_Ctx(), rows, attrs, *args, False)
     return tuple(outs), vis, int(n_pairs)
 
 
