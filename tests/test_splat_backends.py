@@ -76,6 +76,47 @@ def test_raster_camera_inside_the_cloud_and_behind_the_near_plane():
             _close(x, y, 1e-9, "grad")
 
 
+def test_raster_pair_record_reused_between_renders():
+    """The backward walks the forward's record of composited pairs, whose buffers are reused from one render
+    to the next (raster_numba._RecordPool): gradients of a render are the same whether its record is fresh or
+    reused after a larger and a smaller scene, or after a forward whose backward never ran; a second backward
+    through one forward (its record already handed on) fails loudly instead of reading another render's."""
+    import method.splat.raster_numba as rn
+
+    def grads(params, cam):
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        out = rasterize(*leaves, cam, None, backend="numba", **RASTER_KW)
+        (out.features.sum() + out.depth_expected.sum() + out.distortion.sum()).backward()
+        return [p.grad for p in leaves]
+
+    rn._records.free.clear()
+    small, cam_s = random_scene(n=40, seed=3)
+    big, cam_b = random_scene(n=400, seed=4)
+    first = grads(small, cam_s)  # a fresh record
+    grads(big, cam_b)  # a larger record: the pool now holds buffers filled with another scene's pairs
+    assert [r[0].shape[0] for r in rn._records.free] and rn._records.free[0][0].shape[0] > 400
+    again = grads(small, cam_s)  # in the big scene's buffers
+    params = [p.clone().requires_grad_(True) for p in small]
+    rasterize(*params, cam_s, None, backend="numba", **RASTER_KW)  # a forward whose backward never runs
+    last = grads(small, cam_s)
+    for a, b, c in zip(first, again, last):
+        assert torch.equal(a, b) and torch.equal(a, c)
+    # two forwards before their backwards: each keeps its own record
+    leaves = [p.clone().requires_grad_(True) for p in small]
+    out = rasterize(*leaves, cam_s, None, backend="numba", **RASTER_KW)
+    other = [p.clone().requires_grad_(True) for p in big]
+    out_big = rasterize(*other, cam_b, None, backend="numba", **RASTER_KW)
+    (out.features.sum() + out.depth_expected.sum() + out.distortion.sum()).backward()
+    out_big.features.sum().backward()
+    for a, p in zip(first, leaves):
+        assert torch.equal(a, p.grad)
+    leaves = [p.clone().requires_grad_(True) for p in small]
+    out = rasterize(*leaves, cam_s, None, backend="numba", **RASTER_KW)
+    out.features.sum().backward(retain_graph=True)
+    with pytest.raises(RuntimeError, match="backward ran twice"):
+        out.features.sum().backward()
+
+
 def test_raster_stop_rule_is_shared(monkeypatch):
     """The compiled kernels read the stop threshold from rasterize.T_STOP: lifting it composites more pairs
     in both backends alike (near-opaque stacks: the stop really cuts)."""

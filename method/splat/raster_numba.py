@@ -24,6 +24,7 @@ so results do not depend on scheduling (deterministic for a given thread count).
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import numba
@@ -191,12 +192,13 @@ def _pair(r, s, xc, yc):
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop,
-            off, threads):
+            off, pair_s, pair_x, pair_g, threads):
     """Per pixel (H W): features (K), sum w z, distortion, log T, W, M1, M2, median depth and splat.
     Per splat: visible. Per row: pairs composited. The pair record for the backward, when ``off`` (from
-    pair_slots) is given (an empty ``off``: none kept): each composited pair's splat, pixel column and
-    Gaussian factor, row y's in compositing order from slot off[y]. ``threads``: numba's thread count,
-    passed in (reading it here would make the kernel uncacheable: a ctypes global)."""
+    pair_slots) is given (an empty ``off``: none kept), written into pair_s, pair_x, pair_g (at least
+    off[H] long): each composited pair's splat, pixel column and Gaussian factor, row y's in compositing
+    order from slot off[y]. ``threads``: numba's thread count, passed in (reading it here would make the
+    kernel uncacheable: a ctypes global)."""
     npix = width * height
     K = attrs.shape[1]
     feat = np.zeros((npix, K))
@@ -210,10 +212,6 @@ def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, n
     visible = np.zeros(r.shape[0], np.bool_)
     pairs = np.zeros(height, np.int64)
     keep = off.shape[0] == height + 1
-    size = off[height] if keep else 0
-    pair_s = np.empty(size, np.int32)
-    pair_x = np.empty(size, np.int32)
-    pair_g = np.empty(size)
     nt = max(1, min(threads, height))
     for ti in prange(nt):  # rows dealt out round-robin: prange's equal halves of a view are not equal work
         done = np.zeros(width, np.bool_)
@@ -261,7 +259,7 @@ def forward(r, attrs, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, n
             pairs[y] = n_pairs
             for x in range(width):
                 log_t[base + x] = math.log(trans[base + x])
-    return feat, dsum, dist, log_t, mom, med, med_id, visible, pairs, pair_s, pair_x, pair_g
+    return feat, dsum, dist, log_t, mom, med, med_id, visible, pairs
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -621,6 +619,40 @@ def as_i64(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.int64).numpy())
 
 
+class _RecordPool:
+    """The pair records' buffers, reused from one step to the next. Why: a record is a few MB, and arrays that
+    size come fresh from the system on most calls, every page faulted in on first write: the forward took
+    14.2 ms without a record and 19.5 ms writing a fresh one each call, on one thread of the AVX2 EPYC
+    (BENCHMARKS.md, issue 23, session 56). A buffer is taken by a forward and given back by its backward;
+    a forward whose backward never runs just lets its buffer go."""
+
+    def __init__(self, keep: int = 2):
+        self.keep = keep
+        self.free: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # smallest first
+        self.lock = threading.Lock()
+
+    def take(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if n == 0:
+            return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0)
+        with self.lock:
+            for i, rec in enumerate(self.free):
+                if rec[0].shape[0] >= n:
+                    return self.free.pop(i)
+            if self.free:
+                self.free.pop(0)  # none fits: let the smallest go
+        n = int(n * 1.25)  # room for the next views' records
+        return np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n)
+
+    def give(self, rec: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        with self.lock:
+            if rec[0].shape[0] and len(self.free) < self.keep:
+                self.free.append(rec)
+                self.free.sort(key=lambda r: r[0].shape[0])
+
+
+_records = _RecordPool()
+
+
 class _RasterRows(torch.autograd.Function):
     """rows (N, 14) [A, B, C, det, centre x, y, depth, opacity] and attrs (N, K) -> per-pixel sums. The
     kernels see only the valid splats, gathered in depth order (geom's ``order``), so a row's splat list
@@ -633,11 +665,12 @@ class _RasterRows(torch.autograd.Function):
         r, a = as_f64(rows.detach().index_select(0, idx)), as_f64(attrs.detach().index_select(0, idx))
         # the backward's pair record, kept only when a backward will run (``keep``)
         off = pair_slots(starts, ids, x0, x1, height) if keep else np.zeros(0, np.int64)
-        feat, dsum, dist, log_t, mom, med, med_id, visible, pairs, pair_s, pair_x, pair_g = forward(
+        record = _records.take(int(off[-1]) if keep else 0)
+        feat, dsum, dist, log_t, mom, med, med_id, visible, pairs = forward(
             r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop, off,
-            numba.get_num_threads())
-        ctx.state = (r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
-                     feat, dsum, mom, med_id)
+            *record, numba.get_num_threads())
+        ctx.state = (r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, feat, dsum, mom, med_id)
+        ctx.record = record
         ctx.dtype = rows.dtype
         ctx.n = rows.shape[0]
         outs = tuple(torch.from_numpy(v).to(rows.dtype) for v in (feat, dsum, dist, log_t, med))
@@ -649,8 +682,11 @@ class _RasterRows(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_feat, g_dsum, g_dist, g_logt, g_med, _g_vis, _g_pairs):
-        (r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
-         feat, dsum, mom, med_id) = ctx.state
+        r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, feat, dsum, mom, med_id = ctx.state
+        if ctx.record is None:
+            raise RuntimeError("the compiled rasterizer's backward ran twice on one forward (retain_graph): its "
+                               "pair record is reused after the first; render again, or use backend='torch'")
+        pair_s, pair_x, pair_g = ctx.record
         npix = width * height
 
         def grad(g, shape):
@@ -659,6 +695,8 @@ class _RasterRows(torch.autograd.Function):
         gr, ga = backward(r, a, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
                           feat, dsum, mom, med_id, grad(g_feat, (npix, a.shape[1])), grad(g_dsum, npix),
                           grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix), numba.get_num_threads())
+        _records.give(ctx.record)
+        ctx.record = None
         idx = torch.from_numpy(order)
         g_rows = torch.zeros((ctx.n, gr.shape[1]), dtype=ctx.dtype).index_copy_(0, idx, torch.from_numpy(gr).to(ctx.dtype))
         g_attrs = torch.zeros((ctx.n, ga.shape[1]), dtype=ctx.dtype).index_copy_(0, idx, torch.from_numpy(ga).to(ctx.dtype))
