@@ -417,8 +417,10 @@ def test_a_training_alone_gives_the_kernels_torchs_threads_and_torch_one():
 def test_the_network_runs_on_the_kernels_threads_forward_and_backward():
     """on_the_kernels_threads (the deformation network in a training alone): torch on both threads while the
     network runs forward and while its backward runs, on one before and after each (the loss and Adam stay on
-    one), whether or not the input needs a gradient; the values and gradients are the plain call's. Outside
-    kernels_take_the_threads (a grid worker) nothing is switched. In a fresh process with a pool of two."""
+    one), whether or not the input needs a gradient; the values and gradients are the plain call's, and the
+    gradient of the network's input is formed only where the input needs one (the switch back once cost it
+    everywhere). Outside kernels_take_the_threads (a grid worker) nothing is switched. In a fresh process with
+    a pool of two."""
 
     code = ("import torch\nfrom method.splat.backend import kernels_take_the_threads, on_the_kernels_threads\n"
             "from method.model.deform import DeformNet\n"
@@ -430,7 +432,13 @@ def test_the_network_runs_on_the_kernels_threads_forward_and_backward():
             "        return a.view_as(a)\n"
             "    @staticmethod\n    def backward(ctx, g):\n        seen.append(('b', torch.get_num_threads()))\n"
             "        return g\n"
-            "def fn(x, t):\n    return tuple(Spy.apply(o) for o in net(Spy.apply(x), t))\n"
+            "class Input(torch.autograd.Function):\n"
+            "    @staticmethod\n    def forward(ctx, a):\n        return a.view_as(a)\n"
+            "    @staticmethod\n    def backward(ctx, g):\n        seen.append(('input grad', 0))\n        return g\n"
+            "class Fn(torch.nn.Module):\n"
+            "    def __init__(self):\n        super().__init__()\n        self.net = net\n"
+            "    def forward(self, x, t):\n        return tuple(Spy.apply(o) for o in net(Input.apply(x), t))\n"
+            "fn = Fn()\n"
             "def grads(x, call):\n    net.zero_grad()\n    out = call(fn, x, 0.4)\n"
             "    mid = torch.get_num_threads()\n    sum((o * o).sum() for o in out).backward()\n"
             "    return mid, torch.get_num_threads(), [p.grad.clone() for p in net.parameters()]\n"
@@ -450,7 +458,8 @@ def test_the_network_runs_on_the_kernels_threads_forward_and_backward():
     out = _run_in_a_fresh_process(code)
     # (torch's threads after the forward, after the backward, those seen inside the network, grads equal);
     # last: outside a training alone, the network ran on the process's two threads, unswitched
-    want = "[(1, 1, [('b', 2), ('f', 2)], True), (1, 1, [('b', 2), ('f', 2)], True), [('b', 2), ('f', 2)]]"
+    want = ("[(1, 1, [('b', 2), ('f', 2)], True), (1, 1, [('b', 2), ('f', 2), ('input grad', 0)], True), "
+            "[('b', 2), ('f', 2)]]")
     assert out.stdout.strip() == want, out.stdout + out.stderr
 
 

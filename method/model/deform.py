@@ -135,8 +135,8 @@ class DeformNet(nn.Module):
             if self.skip and i == self.skip:
                 # [h, enc] W^T as h W_h^T + enc W_e^T: no product has the odd width 167 (at `small` its
                 # backward ran at half the speed of the 128-wide ones), and the encoding's gradient is only
-                # formed where the positions need one (not for the nodes of a grid worker; a training alone
-                # asks for it, backend.on_the_kernels_threads) (BENCHMARKS.md, issue 23, session 55)
+                # formed where the positions need one (never at the nodes) (BENCHMARKS.md, issue 23, sessions
+                # 55-56)
                 w = h.shape[-1]
                 bias = F.linear(tfeat, layer.weight[:, w + e:], layer.bias)[0]
                 h = torch.addmm(F.linear(enc, layer.weight[:, w + self._enc_cols], bias), h, layer.weight[:, :w].t())

@@ -107,28 +107,54 @@ class _SetThreadsOnBackward(torch.autograd.Function):
         return (None,) + grads
 
 
-def on_the_kernels_threads(fn, x: torch.Tensor, *args):
-    """``fn(x, *args)`` (a tuple of tensors: the deformation network) with torch on every thread of a
+_pending_hooks: list = []  # the thread switch's hooks on the network's parameters not yet fired
+
+
+def _switch_back_after(params: list[torch.Tensor]) -> None:
+    """Set torch back to one thread once the backward has every gradient of ``params`` (the network's
+    weights: the last thing its backward computes), by a hook that removes itself when it fires. A hook
+    from a forward whose backward never ran is removed by the next call."""
+    while _pending_hooks:
+        _pending_hooks.pop().remove()
+    handle = None
+
+    def fire(_grads):
+        torch.set_num_threads(1)
+        if handle is not None:
+            handle.remove()
+            if handle in _pending_hooks:
+                _pending_hooks.remove(handle)
+
+    handle = torch.autograd.graph.register_multi_grad_hook(params, fire, mode="all")
+    _pending_hooks.append(handle)
+
+
+def on_the_kernels_threads(net: torch.nn.Module, x: torch.Tensor, *args):
+    """``net(x, *args)`` (a tuple of tensors: the deformation network) with torch on every thread of a
     training alone, forward and backward, where ``kernels_take_the_threads`` left torch one.
 
     Why: the network's products at 4,096 nodes are large enough to gain from a second core, unlike the
     small ops the one thread is for (a `small` stage-1 step: BENCHMARKS.md, issue 23, session 39). The
-    backward switches by two markers in the graph: one after the network (its backward sets all threads
-    before the network's backward runs) and one before it (set back to one thread after it), the second
-    fed by a throw-away leaf so that it runs whether or not ``x`` needs a gradient (the price: the first
-    layer's gradient w.r.t. its input, one small product)."""
+    backward switches by a marker after the network (its backward sets all threads before the network's
+    backward runs) and back to one thread when the network's weights have their gradients (a hook on them),
+    or, where the weights take none (frozen) and ``x`` needs a gradient, by a marker on ``x``. Until session
+    56 the switch back was a marker on ``x`` fed by a throw-away leaf, which made the network form the
+    gradient of its input and its encoding where nothing needed them: 34 against 28 ms of the network's
+    forward and backward on one thread (BENCHMARKS.md, issue 23, session 56)."""
     n = _kernel_threads
     if n is None or n <= 1:
-        return fn(x, *args)
+        return net(x, *args)
     grad = torch.is_grad_enabled()
-    if grad:
-        anchor = torch.zeros((), dtype=x.dtype, device=x.device, requires_grad=True)
-        x, _ = _SetThreadsOnBackward.apply(1, x, anchor)
+    weights = [p for p in net.parameters() if p.requires_grad] if grad else []
+    if grad and not weights and x.requires_grad:
+        x, = _SetThreadsOnBackward.apply(1, x)
     torch.set_num_threads(n)
     try:
-        out = fn(x, *args)
+        out = net(x, *args)
     finally:
         torch.set_num_threads(1)
     if grad and any(o.requires_grad for o in out):
+        if weights:
+            _switch_back_after(weights)
         out = _SetThreadsOnBackward.apply(n, *out)
     return out
