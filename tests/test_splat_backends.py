@@ -78,8 +78,9 @@ def test_raster_camera_inside_the_cloud_and_behind_the_near_plane():
 
 def test_raster_pair_record_reused_between_renders():
     """The backward walks the forward's record of composited pairs, whose buffers are reused from one render
-    to the next (raster_numba._RecordPool): gradients of a render are the same whether its record is fresh or
-    reused after a larger and a smaller scene, or after a forward whose backward never ran; a second backward
+    to the next, as are the backward's gradient buffers (raster_numba._ScratchPool): gradients of a render are
+    the same whether its record and buffers are fresh or reused after a larger scene's, or after a forward
+    whose backward never ran; a second backward
     through one forward (its record already handed on) fails loudly instead of reading another render's."""
     import method.splat.raster_numba as rn
 
@@ -90,11 +91,13 @@ def test_raster_pair_record_reused_between_renders():
         return [p.grad for p in leaves]
 
     rn._records.free.clear()
+    rn._grad_buffers.free.clear()
     small, cam_s = random_scene(n=40, seed=3)
     big, cam_b = random_scene(n=400, seed=4)
     first = grads(small, cam_s)  # a fresh record
     grads(big, cam_b)  # a larger record: the pool now holds buffers filled with another scene's pairs
-    assert [r[0].shape[0] for r in rn._records.free] and rn._records.free[0][0].shape[0] > 400
+    rn._records.free[:] = [max(rn._records.free, key=lambda rec: rec[0].shape[0])]  # only the big scene's
+    assert rn._records.free[0][0].shape[0] > 400 and rn._grad_buffers.free
     again = grads(small, cam_s)  # in the big scene's buffers
     params = [p.clone().requires_grad_(True) for p in small]
     rasterize(*params, cam_s, None, backend="numba", **RASTER_KW)  # a forward whose backward never runs

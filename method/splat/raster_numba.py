@@ -286,18 +286,19 @@ def _pair_terms(r, s, xc, yc):
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def backward(r, attrs, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
-             feat, dsum, mom, med_id, g_feat, g_dsum, g_dist, g_logt, g_med, nt):
+             feat, dsum, mom, med_id, g_feat, g_dsum, g_dist, g_logt, g_med, g_r, g_a, nt):
     """Gradients w.r.t. the rows r (N, 14) and attrs (N, K), given the upstream per-pixel gradients, over
     the forward's pair record (off, pairs per row, and each pair's splat, column and Gaussian factor): the
     composited pairs only, in the forward's order, with no span, alpha test or exponential to redo.
-    ``nt`` per-thread buffers, rows dealt round-robin."""
+    ``nt`` per-thread buffers g_r (nt, N, 14) and g_a (nt, N, K), given (their contents are overwritten: each
+    thread zeroes its own), rows dealt round-robin."""
     n = r.shape[0]
     K = attrs.shape[1]
-    g_r = np.zeros((nt, n, 14))
-    g_a = np.zeros((nt, n, K))
     for ti in prange(nt):
         gr = g_r[ti]
         ga = g_a[ti]
+        gr[:, :] = 0.0
+        ga[:, :] = 0.0
         trans = np.ones(width)
         prefix = np.zeros(width)
         total = np.zeros(width)
@@ -361,7 +362,7 @@ def backward(r, attrs, width, height, cx, cy, m_scale, m_near, off, pairs, pair_
                     gr[s, 11] += -4.0 * g_rho * dy
                     gr[s, 12] += g_depth
     if nt == 1:
-        return g_r[0], g_a[0]
+        return g_r[0].copy(), g_a[0].copy()
     out_r = np.empty((n, 14))
     out_a = np.empty((n, K))
     for ch in prange((n + SPLAT_BLOCK - 1) // SPLAT_BLOCK):  # the buffers summed in thread order
@@ -619,38 +620,41 @@ def as_i64(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.int64).numpy())
 
 
-class _RecordPool:
-    """The pair records' buffers, reused from one step to the next. Why: a record is a few MB, and arrays that
-    size come fresh from the system on most calls, every page faulted in on first write: the forward took
-    14.2 ms without a record and 19.5 ms writing a fresh one each call, on one thread of the AVX2 EPYC
-    (BENCHMARKS.md, issue 23, session 56). A buffer is taken by a forward and given back by its backward;
-    a forward whose backward never runs just lets its buffer go."""
+class _ScratchPool:
+    """Scratch arrays reused from one call to the next: the pair records (taken by a forward, given back by its
+    backward) and the backward's per-thread gradient buffers. Why: arrays of a few MB come fresh from the
+    system on most calls, every page faulted in on first write, and on two threads the faults serialise. On
+    the AVX2 EPYC (BENCHMARKS.md, issue 23, session 56): the forward took 14.1 ms with a reused record and
+    19.1 ms with a fresh one, on one thread; the backward 7.2 ms with reused gradient buffers and 12.4 ms with
+    fresh ones, on two. ``dtypes``: one flat array of each per set; a set whose caller never gives it back
+    (a forward whose backward never runs) is just let go."""
 
-    def __init__(self, keep: int = 2):
+    def __init__(self, dtypes: tuple, keep: int = 2):
+        self.dtypes = dtypes
         self.keep = keep
-        self.free: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # smallest first
+        self.free: list[tuple[np.ndarray, ...]] = []
         self.lock = threading.Lock()
 
-    def take(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if n == 0:
-            return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0)
+    def take(self, sizes: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+        """A set of flat arrays, the i-th at least sizes[i] long (uninitialised)."""
+        if not any(sizes):
+            return tuple(np.zeros(0, dt) for dt in self.dtypes)
         with self.lock:
-            for i, rec in enumerate(self.free):
-                if rec[0].shape[0] >= n:
+            for i, arrays in enumerate(self.free):
+                if all(a.shape[0] >= n for a, n in zip(arrays, sizes)):
                     return self.free.pop(i)
-            if self.free:
-                self.free.pop(0)  # none fits: let the smallest go
-        n = int(n * 1.25)  # room for the next views' records
-        return np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n)
+            if len(self.free) >= self.keep:
+                self.free.pop(0)  # none fits: let the oldest go
+        return tuple(np.empty(int(n * 1.25), dt) for n, dt in zip(sizes, self.dtypes))  # room for larger views
 
-    def give(self, rec: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    def give(self, arrays: tuple[np.ndarray, ...]) -> None:
         with self.lock:
-            if rec[0].shape[0] and len(self.free) < self.keep:
-                self.free.append(rec)
-                self.free.sort(key=lambda r: r[0].shape[0])
+            if arrays[0].shape[0] and len(self.free) < self.keep:
+                self.free.append(arrays)
 
 
-_records = _RecordPool()
+_records = _ScratchPool((np.int32, np.int32, np.float64))
+_grad_buffers = _ScratchPool((np.float64, np.float64), keep=1)
 
 
 class _RasterRows(torch.autograd.Function):
@@ -665,7 +669,8 @@ class _RasterRows(torch.autograd.Function):
         r, a = as_f64(rows.detach().index_select(0, idx)), as_f64(attrs.detach().index_select(0, idx))
         # the backward's pair record, kept only when a backward will run (``keep``)
         off = pair_slots(starts, ids, x0, x1, height) if keep else np.zeros(0, np.int64)
-        record = _records.take(int(off[-1]) if keep else 0)
+        size = int(off[-1]) if keep else 0
+        record = _records.take((size, size, size))
         feat, dsum, dist, log_t, mom, med, med_id, visible, pairs = forward(
             r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop, off,
             *record, numba.get_num_threads())
@@ -692,9 +697,13 @@ class _RasterRows(torch.autograd.Function):
         def grad(g, shape):
             return np.zeros(shape) if g is None else as_f64(g).reshape(shape)
 
+        nt, n, k = numba.get_num_threads(), r.shape[0], a.shape[1]
+        bufs = _grad_buffers.take((nt * n * 14, nt * n * k))
         gr, ga = backward(r, a, width, height, cx, cy, m_scale, m_near, off, pairs, pair_s, pair_x, pair_g,
-                          feat, dsum, mom, med_id, grad(g_feat, (npix, a.shape[1])), grad(g_dsum, npix),
-                          grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix), numba.get_num_threads())
+                          feat, dsum, mom, med_id, grad(g_feat, (npix, k)), grad(g_dsum, npix),
+                          grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix),
+                          bufs[0][:nt * n * 14].reshape(nt, n, 14), bufs[1][:nt * n * k].reshape(nt, n, k), nt)
+        _grad_buffers.give(bufs)
         _records.give(ctx.record)
         ctx.record = None
         idx = torch.from_numpy(order)
