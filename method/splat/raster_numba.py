@@ -13,8 +13,9 @@ views, whose ground fills the lower half).
 The forward keeps a record of the pairs it composited (each one's splat, pixel column and Gaussian factor,
 row by row in compositing order; 16 bytes a pair, slots sized by pair_slots), and the backward walks that
 record: no span, no alpha test, no exponential and no early-stop bookkeeping redone, only the pair's
-cheap terms (_pair_terms). Recomputing every pair instead made the backward 1.1-1.9x slower on real `small`
-views, with the same gradients to the last bit (BENCHMARKS.md, issue 23, session 56). Per
+cheap terms (_pair_terms). Recomputing every pair instead made the backward 1.48x slower on real `small`
+views (19.1 against 12.9 ms on one thread), with the same gradients to the last bit (BENCHMARKS.md, issue
+23, session 56). Per
 pixel, the suffix sum the compositing gradient needs (sum over later pairs of g_w w) is the pixel's
 total, known from the forward outputs, minus a running prefix:
     sum_k g_w_k w_k = sum_c gF_c F_c + gD D + 2 gDist (W M2 - M1^2).
