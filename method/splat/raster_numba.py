@@ -677,6 +677,7 @@ class _RasterRows(torch.autograd.Function):
             *record, numba.get_num_threads())
         ctx.state = (r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, feat, dsum, mom, med_id)
         ctx.record = record
+        ctx.redo = (kk, bounded, x0, x1, starts, ids, near, t_stop)  # to write the record again (below)
         ctx.dtype = rows.dtype
         ctx.n = rows.shape[0]
         outs = tuple(torch.from_numpy(v).to(rows.dtype) for v in (feat, dsum, dist, log_t, med))
@@ -689,9 +690,13 @@ class _RasterRows(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_feat, g_dsum, g_dist, g_logt, g_med, _g_vis, _g_pairs):
         r, a, order, width, height, cx, cy, m_scale, m_near, off, pairs, feat, dsum, mom, med_id = ctx.state
-        if ctx.record is None:
-            raise RuntimeError("the compiled rasterizer's backward ran twice on one forward (retain_graph): its "
-                               "pair record is reused after the first; render again, or use backend='torch'")
+        if ctx.record is None:  # a second backward through one forward (retain_graph, gradcheck): the
+            # record went back to the pool after the first, so the forward writes it again
+            kk, bounded, x0, x1, starts, ids, near, t_stop = ctx.redo
+            size = int(off[-1])
+            ctx.record = _records.take((size, size, size))
+            forward(r, a, kk, bounded, x0, x1, starts, ids, width, height, cx, cy, near, m_scale, m_near, t_stop,
+                    off, *ctx.record, numba.get_num_threads())
         pair_s, pair_x, pair_g = ctx.record
         npix = width * height
 
