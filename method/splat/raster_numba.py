@@ -362,8 +362,8 @@ def backward(r, attrs, width, height, cx, cy, m_scale, m_near, off, pairs, pair_
                     gr[s, 10] += -4.0 * g_rho * dx
                     gr[s, 11] += -4.0 * g_rho * dy
                     gr[s, 12] += g_depth
-    if nt == 1:
-        return g_r[0].copy(), g_a[0].copy()
+    if nt == 1:  # views of the given buffers: the caller reads them before handing the buffers on
+        return g_r[0], g_a[0]
     out_r = np.empty((n, 14))
     out_a = np.empty((n, K))
     for ch in prange((n + SPLAT_BLOCK - 1) // SPLAT_BLOCK):  # the buffers summed in thread order
@@ -709,12 +709,14 @@ class _RasterRows(torch.autograd.Function):
                           feat, dsum, mom, med_id, grad(g_feat, (npix, k)), grad(g_dsum, npix),
                           grad(g_dist, npix), grad(g_logt, npix), grad(g_med, npix),
                           bufs[0][:nt * n * 14].reshape(nt, n, 14), bufs[1][:nt * n * k].reshape(nt, n, k), nt)
-        _grad_buffers.give(bufs)
         _records.give(ctx.record)
         ctx.record = None
         idx = torch.from_numpy(order)
+        # index_copy_ copies even where .to() is a no-op (float64), so gr and ga (on one thread, views of the
+        # buffers) are read before the buffers go back to the pool
         g_rows = torch.zeros((ctx.n, gr.shape[1]), dtype=ctx.dtype).index_copy_(0, idx, torch.from_numpy(gr).to(ctx.dtype))
         g_attrs = torch.zeros((ctx.n, ga.shape[1]), dtype=ctx.dtype).index_copy_(0, idx, torch.from_numpy(ga).to(ctx.dtype))
+        _grad_buffers.give(bufs)
         return (g_rows, g_attrs) + (None,) * 10
 
 
