@@ -155,6 +155,8 @@ def _validate(cfg: dict) -> None:
     if s["max_gaussians"] and s["max_gaussians"] < s["init_points"]:
         raise UserError(f"key 'stage1.max_gaussians' ({s['max_gaussians']}) is below stage1.init_points "
                         f"({s['init_points']})")
+    if not 0 <= s["depth_ratio"] <= 1:
+        raise UserError(f"key 'stage1.depth_ratio' must be in [0, 1] (0: expected depth, 1: median; got {s['depth_ratio']})")
     if not 0 <= s["lambda_dssim"] <= 1:
         raise UserError(f"key 'stage1.lambda_dssim' must be in [0, 1] (got {s['lambda_dssim']})")
     if not 0 < s["time_window_start"] <= 1:

@@ -817,3 +817,38 @@ def test_stage2_trunk_cache_gives_the_same_deformation_and_head_gradients(monkey
     scene.net.layers[0].weight.requires_grad_(True)
     with pytest.raises(ValueError, match="frozen means, trunk"):
         scene.deform(0.5, trunk_cache={})
+
+
+def test_stage1_depth_ratio_picks_the_depth_the_normal_consistency_compares_with(ci_dataset, tmp_path, monkeypatch):
+    """stage1.depth_ratio reaches stage 1's render: the depth normals come from the expected depth at 0 and
+    from the median depth at 1 (and the two differ on this data, so the check can fail); out of [0, 1] it is
+    a one-line error naming the key."""
+    import method.stage1 as st1
+    from lumibench.errors import UserError
+    from method.config import load_method_config
+    from method.splat.rasterize import normal_from_depth
+    from method.train import train_stage1
+
+    seen = []
+    real = st1.render
+
+    def spy(d, camera, background, screen_offsets=None, depth_ratio=0.0):
+        out = real(d, camera, background, screen_offsets=screen_offsets, depth_ratio=depth_ratio)
+        seen.append((camera, out, depth_ratio))
+        return out
+
+    monkeypatch.setattr(st1, "render", spy)
+    torch.set_num_threads(1)
+    for ratio in (0.0, 1.0):
+        seen.clear()
+        train_stage1(ci_dataset, "city", tmp_path / f"run{int(ratio)}",
+                     _cfg(["stage1.iterations=3", f"stage1.depth_ratio={ratio}"]), seed=0, progress=False,
+                     write_outputs=False)
+        camera, out, got = seen[-1]
+        assert got == ratio
+        with torch.no_grad():
+            used, other = (out.depth_median, out.depth_expected) if ratio else (out.depth_expected, out.depth_median)
+            assert torch.allclose(out.normal_from_depth, normal_from_depth(used, camera), atol=1e-6)
+            assert (out.normal_from_depth - normal_from_depth(other, camera)).abs().max() > 1e-2
+    with pytest.raises(UserError, match="stage1.depth_ratio"):
+        load_method_config("ci", ["stage1.depth_ratio=1.5"])

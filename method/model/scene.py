@@ -132,8 +132,9 @@ class DynamicScene:
 
 
 def render(d: Deformed, camera: Camera, background: torch.Tensor,
-           screen_offsets: torch.Tensor | None = None) -> RasterOutput:
-    """Rasterize the STAGE1 layout (colour, P); the background fills colour only."""
+           screen_offsets: torch.Tensor | None = None, depth_ratio: float = 0.0) -> RasterOutput:
+    """Rasterize the STAGE1 layout (colour, P); the background fills colour only. ``depth_ratio``: the depth
+    of ``normal_from_depth``, expected (0) to median (1) (stage1.depth_ratio)."""
     f = buffers.pack(STAGE1, colour=d.colours, p=d.p)
     return rasterize(d.means, d.quats, d.scales, d.opacities, f, camera, buffers.background_for(STAGE1, background, f),
-                     screen_offsets=screen_offsets)
+                     screen_offsets=screen_offsets, depth_ratio=depth_ratio)
