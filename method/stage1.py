@@ -448,8 +448,7 @@ class Stage1:
         timer.lap("deform")
         densify_now = s["densify_from"] <= it <= s["densify_until"]
         offsets = torch.zeros(len(scene.g), 2, device=self.device, requires_grad=True) if densify_now else None
-        # a run written before stage1.depth_ratio existed (its config.yaml lacks it) resumes with the expected depth
-        out = render(d, view.camera, self.data.background, screen_offsets=offsets, depth_ratio=s.get("depth_ratio", 0.0))
+        out = render(d, view.camera, self.data.background, screen_offsets=offsets, depth_ratio=s["depth_ratio"])
         timer.lap("rasterize")
         loss, terms = stage1_loss(out, d, view.rgb, view.alpha, s, it, warm)
         self._step = {"view": view, "out": out, "offsets": offsets, "densify": densify_now}
