@@ -168,7 +168,7 @@ def _validate(cfg: dict) -> None:
     for key in ("checkpoint_every", "densify_every", "log_every"):
         if s[key] < 1:
             raise UserError(f"key 'stage1.{key}' must be >= 1 (got {s[key]})")
-    for key in ("checkpoint_every", "log_every"):
+    for key in ("checkpoint_every", "log_every", "env_fit_regions"):
         if cfg["stage2"][key] < 1:
             raise UserError(f"key 'stage2.{key}' must be >= 1 (got {cfg['stage2'][key]})")
     for key in ("opacity_reset_every", "eval_every"):

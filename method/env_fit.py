@@ -12,6 +12,9 @@ at texel k", with visibility traced towards every texel, must explain where the 
 is a search: for every upper-hemisphere texel k and sun-to-sky ratio rho = L / s on a log grid, the mean
 absolute log residual about the residuals' median (which absorbs the unknown scale); the best (k, rho) wins.
 A ground level (the lower hemisphere's radiance relative to the sky's) is searched the same way.
+The median is taken per region (``stage2.env_fit_regions``: k-means clusters of the points' positions), so
+each region has its own grey albedo: one grey value for the whole scene let the sun explain materials (a
+white wall over a wooden floor read as a sun 35-46 degrees too low on jumpingjacks; BENCHMARKS.md, session 59).
 Cost: one tracer grid and P x (H W / 2) shadow rays per fitted view (1-2 CPU seconds each at `small`).
 """
 from __future__ import annotations
@@ -44,7 +47,7 @@ def texel_directions(height: int, width: int, device=None, dtype=torch.float32) 
 
 
 def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, width: int,
-                ratios=DEFAULT_RATIOS, lower_levels=DEFAULT_LOWER) -> dict:
+                ratios=DEFAULT_RATIOS, lower_levels=DEFAULT_LOWER, regions: torch.Tensor | None = None) -> dict:
     """The sun texel, sun-to-sky ratio and ground level that best explain ``radiance`` (P,) > 0 as a grey
     albedo times the irradiance sum_j weights[:, j] env_j, env = 1 on the upper hemisphere, ``lower`` on
     the lower one (the ground is darker than the sky; what the undersides of objects see), + rho at one
@@ -76,6 +79,9 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
         raise ValueError(f"weights must be (P, {height * width}), got {tuple(weights.shape)}")
     if P == 0:
         raise ValueError("no points to fit the env map to")
+    if regions is not None and regions.shape != (P,):
+        raise ValueError(f"regions must be (P,) with P = {P}, got {tuple(regions.shape)}")
+    groups = _groups(regions, weights.device)
     rgb = None
     if radiance.dim() == 2:
         if radiance.shape != (P, 3):
@@ -90,36 +96,77 @@ def fit_sun_sky(weights: torch.Tensor, radiance: torch.Tensor, height: int, widt
     upper = [k for k in range(height * width) if bool(is_upper[k])]
     best = None
     for k in upper:
-        mad, j, lower, bright_e = _search(sky_up, sky_low, w[:, k:k + 1], log_y, rho, lower_levels)
+        mad, j, lower, bright_e = _search(sky_up, sky_low, w[:, k:k + 1], log_y, rho, lower_levels, groups)
         if best is None or mad < best[0]:
             best = (mad, k, j, lower, bright_e)
     mad, k, j, lower, bright_e = best
     no_sun = ((sky_up + sky_low).clamp_min(1e-12).log() - log_y[:, None])
-    no_sun_mad = float((no_sun - no_sun.median(0).values).abs().mean())
+    no_sun_mad = float(_spread(no_sun, groups)[0])
     out = {"texel": (k // width, k % width), "ratio": float(rho[j]), "lower": lower,
            "scale": math.pi / bright_e, "mad": mad, "mad_no_sun": no_sun_mad}
     if rgb is not None:
         per = [_search(sky_up, sky_low, w[:, k:k + 1], rgb[:, c].to(torch.float64).clamp_min(1e-6).log(), rho,
-                       (lower,)) for c in range(3)]  # the ground grey, at the luminance fit's level (see above)
+                       (lower,), groups) for c in range(3)]  # the ground grey, at the luminance fit's level (see above)
         out["colour"] = {"ratio": [float(rho[p[1]]) for p in per], "lower": [p[2] for p in per],
                          "scale": [math.pi / p[3] for p in per]}
         out["colour"]["warm"] = out["colour"]["ratio"][0] > out["colour"]["ratio"][2]
     return out
 
 
-def _search(sky_up, sky_low, w_k, log_y, rho, lower_levels) -> tuple[float, int, float, float]:
+def _groups(regions: torch.Tensor | None, device) -> list[torch.Tensor] | None:
+    """The row indices of each region (None: one region, the whole set)."""
+    if regions is None:
+        return None
+    regions = regions.to(device)
+    return [torch.nonzero(regions == r).squeeze(1) for r in torch.unique(regions)]
+
+
+def _spread(r: torch.Tensor, groups: list[torch.Tensor] | None) -> torch.Tensor:
+    """(R,): the mean absolute deviation of each column of ``r`` (P, R) about its median, the median taken
+    within each group of rows (each region's own albedo)."""
+    if groups is None:
+        return (r - r.median(0).values).abs().mean(0)
+    total = torch.zeros(r.shape[1], dtype=r.dtype, device=r.device)
+    for rows in groups:
+        part = r[rows]
+        total += (part - part.median(0).values).abs().sum(0)
+    return total / r.shape[0]
+
+
+def _search(sky_up, sky_low, w_k, log_y, rho, lower_levels, groups=None) -> tuple[float, int, float, float]:
     """Over the ground levels and ratios, the best fit of log_y (P,) by sky + rho x the texel's w_k (P, 1):
-    (mean absolute log residual about the median, the ratio's index, the ground level, the LEVEL_QUANTILE
-    quantile of that fit's irradiance)."""
+    (mean absolute log residual about the median (each group's own, :func:`_spread`), the ratio's index, the
+    ground level, the LEVEL_QUANTILE quantile of that fit's irradiance)."""
     best = None
     for lower in lower_levels:
         e = (sky_up + float(lower) * sky_low + rho[None, :] * w_k).clamp_min(1e-12)  # (P, R)
-        r = e.log() - log_y[:, None]
-        mad = (r - r.median(0).values).abs().mean(0)
+        mad = _spread(e.log() - log_y[:, None], groups)
         j = int(mad.argmin())
         if best is None or float(mad[j]) < best[0]:
             best = (float(mad[j]), j, float(lower), float(e[:, j].quantile(LEVEL_QUANTILE)))
     return best
+
+
+def spatial_regions(points: torch.Tensor, count: int, generator: torch.Generator, iterations: int = 20) -> torch.Tensor:
+    """(P,) labels: ``count`` k-means clusters of the points' positions (P, 3), started from points drawn with
+    ``generator``. Nearby surface points mostly share a material, so each cluster stands for one grey albedo;
+    shadows and normals vary within a cluster, and that variation is what the fit reads the sun from."""
+    P = points.shape[0]
+    if count <= 1 or P <= count:
+        return torch.zeros(P, dtype=torch.long, device=points.device)
+    x = points.detach().to(torch.float64)
+    centres = x[torch.randperm(P, generator=generator)[:count].to(x.device)].clone()
+    labels = torch.cdist(x, centres).argmin(1)
+    for _ in range(iterations):
+        for c in range(count):
+            member = labels == c
+            if bool(member.any()):
+                centres[c] = x[member].mean(0)
+        new = torch.cdist(x, centres).argmin(1)
+        if torch.equal(new, labels):
+            break
+        labels = new
+    return labels
 
 
 def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio, scale, lower=1.0) -> torch.Tensor:
@@ -149,7 +196,7 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
     dirs = texel_directions(H, W, device=dev)
     n_views = min(int(s2["env_fit_views"]), len(data.train))
     picks = torch.randperm(len(data.train), generator=generator)[:n_views].tolist()
-    weights, radiance, rays = [], [], 0
+    weights, radiance, points, rays = [], [], [], 0
     for k in picks:
         v = data.train[k]
         d = scene.deform(v.time, p_mode="inference")
@@ -172,15 +219,17 @@ def fit_env(scene, mats, data, cfg: dict, generator: torch.Generator) -> tuple[t
         vis[pi_, ti] = T.to(vis)
         weights.append(cw * vis)
         radiance.append(srgb_to_linear(v.rgb.reshape(-1, 3)[pix].clamp(0, 1)))
+        points.append(pts)
     if not weights:
         raise ValueError("no foreground pixels in the training views to fit the env map to")
     rgb = torch.cat(radiance)
     # a small dense search (one candidate sun per upper texel): on the CPU, not as hundreds of GPU launches
     coloured = bool(s2["env_fit_colour"])
-    fit = fit_sun_sky(torch.cat(weights).cpu(), (rgb if coloured else luminance(rgb)).cpu(), H, W)
+    regions = spatial_regions(torch.cat(points).cpu(), int(s2["env_fit_regions"]), generator)
+    fit = fit_sun_sky(torch.cat(weights).cpu(), (rgb if coloured else luminance(rgb)).cpu(), H, W, regions=regions)
     c = fit["colour"] if coloured and fit["colour"]["warm"] else fit  # see fit_sun_sky on "warm"
     env = sun_sky_map(H, W, fit["texel"], c["ratio"], c["scale"], c["lower"]).to(dev)
-    record = {**fit, "texel": list(fit["texel"]), "points": int(rgb.shape[0]),
+    record = {**fit, "texel": list(fit["texel"]), "points": int(rgb.shape[0]), "regions": int(torch.unique(regions).numel()),
               "views": len(weights), "rays": rays, "seconds": time.perf_counter() - t0,
               "cpu_seconds": time.process_time() - c0}
     return env, record

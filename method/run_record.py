@@ -36,7 +36,8 @@ PREDATING = {"model.mlp_precision": "fp32",  # session 19
              "stage2.normal_filter": 0.0,  # session 38
              "model.motion_bases": 0,  # session 45
              "stage2.relight_indirect": False,  # session 48
-             "stage1.depth_ratio": 0.0}  # session 58
+             "stage1.depth_ratio": 0.0,  # session 58
+             "stage2.env_fit_regions": 1}  # session 59
 # settings that decide only how a trained run is shaded at test time (its predictions, relighting, the
 # diagnostic), not what its stages train: a resume or the next stage does not compare them, and writing the
 # predictions records the value they were written with (record_prediction_settings), so the run's settings

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from method.env_fit import fit_sun_sky, sun_sky_map, texel_directions
+from method.env_fit import fit_sun_sky, spatial_regions, sun_sky_map, texel_directions
 from method.shading.envmap import cosine_weights, texel_index, texel_moments
 
 H, W = 16, 32
@@ -98,6 +98,68 @@ def test_coloured_fit_recovers_the_suns_colour_against_the_skys():
     assert not fit_sun_sky(w, albedo * (w @ env) / math.pi, H, W)["colour"]["warm"]
 
 
+def _wall_over_floor(wall_albedo: float, n: int = 600, seed: int = 0, sun=(3, 11), ratio: float = 80.0):
+    """jumpingjacks in miniature: a floor (normals up, albedo 0.3) and a wall facing the sun's azimuth
+    (albedo ``wall_albedo``), both textured +-20 % and with random blocks of the sky occluded; the points'
+    positions put each in its own place. Returns (weights, radiance, positions)."""
+    g = torch.Generator().manual_seed(seed)
+    sd = texel_directions(H, W)[sun[0] * W + sun[1]]
+    facing = torch.tensor([float(sd[0]), float(sd[1]), 0.0])
+    facing = facing / facing.norm()
+    floor = torch.tensor([0.0, 0.0, 1.0]).expand(n, 3) + 0.05 * torch.randn(n, 3, generator=g)
+    wall = facing.expand(n, 3) + 0.05 * torch.randn(n, 3, generator=g)
+    nrm = torch.cat([floor, wall])
+    nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+    vis = torch.ones(2 * n, H, W)
+    for i in range(2 * n):
+        if torch.rand(1, generator=g) < 0.5:
+            r0 = int(torch.randint(0, H // 2, (1,), generator=g))
+            c0 = int(torch.randint(0, W, (1,), generator=g))
+            vis[i, r0:r0 + 5][:, [(c0 + j) % W for j in range(8)]] = 0.0
+    w = cosine_weights(nrm, texel_moments(H, W)) * vis.reshape(2 * n, -1)
+    env = torch.ones(H * W)
+    env[sun[0] * W + sun[1]] += ratio
+    albedo = torch.cat([torch.full((n,), 0.3), torch.full((n,), wall_albedo)])
+    radiance = albedo * torch.exp(0.2 * torch.randn(2 * n, generator=g)) * (w @ env) / math.pi
+    on_floor = torch.rand(n, 3, generator=g) * 2 - 1
+    on_floor[:, 2] = 0.0
+    on_wall = -1.5 * facing + torch.rand(n, 3, generator=g) * torch.tensor([0.1, 0.1, 1.0])
+    return w, radiance, torch.cat([on_floor, on_wall])
+
+
+def test_regions_keep_a_bright_wall_from_reading_as_a_low_sun():
+    """One grey albedo for the scene explains a white wall over a dark floor with a sun low in the wall's
+    direction (the failure on jumpingjacks under city); each spatial region its own grey albedo leaves only
+    the shading within each, and the fit finds the true texel. With one material both fits are right."""
+    for seed in (0, 1):
+        w, y, pos = _wall_over_floor(0.9, seed=seed)
+        regions = spatial_regions(pos, 8, torch.Generator().manual_seed(0))
+        assert tuple(fit_sun_sky(w, y, H, W)["texel"]) != (3, 11)  # the input exercises the rule: row 7 here
+        fit = fit_sun_sky(w, y, H, W, regions=regions)
+        assert tuple(fit["texel"]) == (3, 11)
+        assert 10 ** -0.25 < fit["ratio"] / 80.0 < 10 ** 0.25
+        assert fit["mad"] < fit["mad_no_sun"]
+        w, y, pos = _wall_over_floor(0.3, seed=seed)
+        assert tuple(fit_sun_sky(w, y, H, W)["texel"]) == (3, 11)
+        assert tuple(fit_sun_sky(w, y, H, W, regions=regions)["texel"]) == (3, 11)
+    one = fit_sun_sky(w, y, H, W, regions=torch.zeros(y.shape[0], dtype=torch.long))
+    assert one == fit_sun_sky(w, y, H, W)  # one region: the scene-wide fit, to the last digit
+    with pytest.raises(ValueError, match="regions must be"):
+        fit_sun_sky(w, y, H, W, regions=torch.zeros(3, dtype=torch.long))
+
+
+def test_spatial_regions_are_kmeans_clusters_of_the_positions():
+    g = torch.Generator().manual_seed(0)
+    blobs = torch.tensor([[0.0, 0, 0], [5.0, 0, 0], [0.0, 5, 0]])
+    pts = (blobs[:, None, :] + 0.3 * torch.randn(3, 50, 3, generator=g)).reshape(-1, 3)
+    labels = spatial_regions(pts, 3, torch.Generator().manual_seed(1))
+    for b in range(3):  # each blob one label, the three labels different
+        assert labels[b * 50:(b + 1) * 50].unique().numel() == 1
+    assert labels.unique().numel() == 3
+    assert torch.equal(labels, spatial_regions(pts, 3, torch.Generator().manual_seed(1)))  # seeded
+    assert spatial_regions(pts, 1, g).eq(0).all() and spatial_regions(pts[:2], 3, g).eq(0).all()
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_fit_on_cuda_tensors_equals_the_cpu_fit():
@@ -149,6 +211,7 @@ def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path, mon
     train_stage2(ci_dataset, "city", run, cfg, seed=0, progress=False)
     first = json.loads((run / "log_stage2.jsonl").read_text().splitlines()[0])["env_fit"]
     assert first["views"] == 2 and first["points"] == 64 and first["rays"] > 0
+    assert 1 < first["regions"] <= cfg["stage2"]["env_fit_regions"]  # each cluster of points its own grey albedo
     env = load_checkpoint(checkpoint_paths(run, 2)[-1][1], "cpu")["materials"]["env"]["log_radiance"].exp()
     want = sun_sky_map(H, W, tuple(first["texel"]), first["ratio"], first["scale"], first["lower"])
     assert torch.allclose(env, want, rtol=1e-5)  # fixed: the fitted map itself
@@ -164,8 +227,8 @@ def test_stage2_starts_from_the_fitted_map_and_logs_it(ci_dataset, tmp_path, mon
     real_fit, fits = env_fit.fit_sun_sky, []
 
     def fit_as_if(warm):  # the real fit, its sun declared warm or not: which map stage 2 starts from
-        def fit(weights, radiance, h, w):
-            out = real_fit(weights, radiance, h, w)
+        def fit(weights, radiance, h, w, **kw):
+            out = real_fit(weights, radiance, h, w, **kw)
             out["colour"] = {"ratio": [40.0, 20.0, 10.0], "lower": [0.5, 0.3, 0.2], "scale": [0.2, 0.3, 0.4],
                              "warm": warm}
             fits.append(out)
@@ -258,7 +321,7 @@ def test_the_fit_traces_from_lifted_points_as_shading_does(monkeypatch):
     data = SimpleNamespace(train=[view], background=torch.zeros(3))
     captured = {}
 
-    def fake_fit(weights, radiance, h, w):
+    def fake_fit(weights, radiance, h, w, **kw):
         captured["w"] = weights
         return {"texel": (0, 0), "ratio": 1.0, "scale": 1.0, "lower": 1.0,
                 "colour": {"ratio": [1.0] * 3, "scale": [1.0] * 3, "lower": [1.0] * 3, "warm": False}}
