@@ -26,6 +26,7 @@ import torch
 
 from lumibench.color import srgb_to_linear
 from method import buffers
+from method.clustering import lloyd
 from method.shading.deferred import accel_for, raster_materials, surface_points, tracer_for
 from method.shading.envmap import cosine_weights, luminance, texel_moments
 from method.shading.visibility import lifted_points
@@ -156,17 +157,7 @@ def spatial_regions(points: torch.Tensor, count: int, generator: torch.Generator
         return torch.zeros(P, dtype=torch.long, device=points.device)
     x = points.detach().to(torch.float64)
     centres = x[torch.randperm(P, generator=generator)[:count].to(x.device)].clone()
-    labels = torch.cdist(x, centres).argmin(1)
-    for _ in range(iterations):
-        for c in range(count):
-            member = labels == c
-            if bool(member.any()):
-                centres[c] = x[member].mean(0)
-        new = torch.cdist(x, centres).argmin(1)
-        if torch.equal(new, labels):
-            break
-        labels = new
-    return labels
+    return lloyd(x, centres, iterations)
 
 
 def sun_sky_map(height: int, width: int, texel: tuple[int, int], ratio, scale, lower=1.0) -> torch.Tensor:

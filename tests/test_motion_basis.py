@@ -14,7 +14,8 @@ import torch
 
 from method.model.gaussians import Gaussians
 from method.model.scene import DynamicScene
-from method.model.motion_basis import MotionBasis, kabsch, kmeans, matrix_to_quat, quat_mul, quat_to_matrix
+from method.clustering import kmeans
+from method.model.motion_basis import MotionBasis, kabsch, matrix_to_quat, quat_mul, quat_to_matrix
 
 
 def _axis_angle(axis, angle) -> torch.Tensor:

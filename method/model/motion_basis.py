@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from method.clustering import kmeans
 from method.model.nodes import row_softmax
 
 
@@ -75,30 +76,6 @@ def kabsch(src: torch.Tensor, dst: torch.Tensor) -> tuple[torch.Tensor, torch.Te
         corr[2] = -1.0  # the best proper rotation, not a reflection
     r = vt.T @ torch.diag(corr) @ u.T
     return r, cd - c
-
-
-@torch.no_grad()
-def kmeans(x: torch.Tensor, k: int, generator: torch.Generator, iterations: int = 30) -> torch.Tensor:
-    """Cluster labels (N,) of the rows of ``x`` by k-means with k-means++ seeding (seeded)."""
-    n = x.shape[0]
-    k = min(k, n)
-    first = int(torch.randint(n, (1,), generator=generator))
-    centres = [x[first]]
-    d2 = ((x - centres[0]) ** 2).sum(-1)
-    for _ in range(1, k):
-        p = d2 / d2.sum().clamp_min(1e-30)
-        i = int(torch.multinomial(p.cpu(), 1, generator=generator))
-        centres.append(x[i])
-        d2 = torch.minimum(d2, ((x - x[i]) ** 2).sum(-1))
-    c = torch.stack(centres)
-    labels = torch.zeros(n, dtype=torch.long, device=x.device)
-    for _ in range(iterations):
-        labels = torch.cdist(x, c).argmin(1)
-        for j in range(k):
-            m = labels == j
-            if bool(m.any()):
-                c[j] = x[m].mean(0)
-    return labels
 
 
 class MotionBasis(nn.Module):
